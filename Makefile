@@ -1,0 +1,37 @@
+# Two commands on a fresh machine: `make run` and `make test`. Each sets up what it needs:
+# the virtual environment, the pinned dependencies, this package, and a local tf2_msgs.
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+EGO    := $(VENV)/bin/ego-motion
+READY  := $(VENV)/.ready
+OUT    ?= out
+
+.PHONY: setup run test bench clean default-bag
+
+setup: $(READY)
+
+$(READY): requirements.txt setup.py resource/tf2_msgs/build_tf2_msgs.sh
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade-strategy only-if-needed -r requirements.txt
+	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
+	@$(PY) -c 'import tf2_msgs.msg' 2>/dev/null || bash resource/tf2_msgs/build_tf2_msgs.sh $(VENV)
+	@$(PY) -c 'import rclpy, cv2, filterpy, mcap, tf2_msgs.msg; print("environment ready:", cv2.__version__)'
+	@touch $@
+
+run: $(READY)
+	$(EGO) replay bags/default --out $(OUT)/default
+
+test: $(READY)
+	$(PY) -m pytest test
+
+bench: $(READY)
+	$(EGO) bench bags/default --out $(OUT)/bench
+
+# Regenerates the committed default bag (deterministic for the seed).
+default-bag: $(READY)
+	rm -rf bags/default
+	$(EGO) generate --scenario loop --duration 12 --out bags/default --rig-out config/rig_default.yaml --seed 7
+
+clean:
+	rm -rf $(VENV) build install log $(OUT)

@@ -1,0 +1,1 @@
+"""Tooling around the estimation graph: bags, scenarios, evaluation, coordinator, CLI."""

@@ -1,0 +1,117 @@
+"""Read a rosbag2 bag with MCAP storage (a folder with metadata.yaml, or a bare .mcap file).
+
+Every way a bag can be unreadable ends in a UserError that names the bag and the problem.
+"""
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from rclpy.serialization import deserialize_message
+
+from multicam_ego_motion.bag.message_types import message_class
+from multicam_ego_motion.errors import UserError
+
+
+@dataclass
+class BagMessage:
+    topic: str
+    typename: str
+    data: bytes
+    log_time_ns: int
+
+    def decode(self):
+        return deserialize_message(self.data, message_class(self.typename))
+
+
+def _mcap_files(path: Path):
+    if not path.exists():
+        raise UserError(f'bag not found: {path}')
+    if path.is_file():
+        if path.suffix != '.mcap':
+            raise UserError(f'not an MCAP file: {path}')
+        return [path]
+    meta = path / 'metadata.yaml'
+    if meta.exists():
+        try:
+            info = yaml.safe_load(meta.read_text())['rosbag2_bagfile_information']
+            names = info.get('relative_file_paths') or [f['path'] for f in info['files']]
+        except (yaml.YAMLError, KeyError, TypeError) as e:
+            raise UserError(f'bag {path}: metadata.yaml is unreadable ({e})') from None
+        if info.get('storage_identifier', 'mcap') != 'mcap':
+            raise UserError(f'bag {path}: storage {info.get("storage_identifier")!r} '
+                            'is not supported (only mcap)')
+        files = [path / n for n in names]
+        missing = [str(f) for f in files if not f.exists()]
+        if missing:
+            raise UserError(f'bag {path}: file listed in metadata.yaml is missing: {missing[0]}')
+        return files
+    files = sorted(path.glob('*.mcap'))
+    if not files:
+        raise UserError(f'bag {path}: no metadata.yaml and no .mcap file in the folder')
+    return files
+
+
+_CORRUPT = (McapError, ValueError, EOFError, OSError, KeyError, IndexError, MemoryError)
+
+
+def _corrupt(path, e):
+    what = type(e).__name__
+    return UserError(f'bag {path} is truncated or corrupt ({what}: {e})'.rstrip())
+
+
+class Rosbag2Reader:
+    """Topics, types and messages of a bag, in log-time order."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self.files = _mcap_files(self.path)
+        self.topics = {}   # name -> typename
+        self.counts = {}   # name -> message count
+        for f in self.files:
+            try:
+                with open(f, 'rb') as stream:
+                    summary = make_reader(stream).get_summary()
+            except _CORRUPT as e:
+                raise _corrupt(f, e) from None
+            if summary is None:
+                raise UserError(f'bag {f} is truncated or corrupt (no MCAP summary: '
+                                'was the writer killed before closing?)')
+            for cid, ch in summary.channels.items():
+                schema = summary.schemas.get(ch.schema_id)
+                self.topics[ch.topic] = schema.name if schema else ''
+                n = summary.statistics.channel_message_counts.get(cid, 0) if summary.statistics else 0
+                self.counts[ch.topic] = self.counts.get(ch.topic, 0) + n
+
+    def require(self, topics):
+        """Raise a UserError naming every requested topic the bag does not hold."""
+        missing = [t for t in topics if t not in self.topics]
+        if missing:
+            raise UserError(f'bag {self.path} has no topic {", ".join(missing)} '
+                            f'(it has: {", ".join(sorted(self.topics)) or "none"})')
+
+    def messages(self, topics=None, start_ns=None, end_ns=None):
+        """Yield BagMessage in log-time order; corrupt data raises UserError."""
+        if topics is not None:
+            self.require(topics)
+        for f in self.files:
+            try:
+                with open(f, 'rb') as stream:
+                    reader = make_reader(stream)
+                    for schema, channel, msg in reader.iter_messages(
+                            topics=list(topics) if topics is not None else None,
+                            start_time=start_ns, end_time=end_ns, log_time_order=True):
+                        yield BagMessage(channel.topic, schema.name if schema else '',
+                                         msg.data, msg.log_time)
+            except _CORRUPT as e:
+                raise _corrupt(f, e) from None
+
+    def decoded(self, topics=None, **kw):
+        """Yield (topic, message, log_time_ns) with messages deserialized by rclpy."""
+        for m in self.messages(topics, **kw):
+            try:
+                yield m.topic, m.decode(), m.log_time_ns
+            except Exception as e:  # rclpy raises plain RuntimeError/TypeError on bad CDR
+                raise UserError(f'bag {self.path}: message on {m.topic} does not decode as '
+                                f'{m.typename} ({e})') from None

@@ -1,0 +1,111 @@
+"""Write a rosbag2 bag with MCAP storage: a folder with metadata.yaml and one .mcap file.
+
+Messages are serialized to CDR by rclpy (the rmw's own serializer), so what lands in the bag
+is byte-for-byte what a ROS 2 subscriber receives.
+"""
+import os
+from pathlib import Path
+
+import yaml
+from mcap.writer import CompressionType, Writer
+from rclpy.serialization import serialize_message
+
+from multicam_ego_motion.bag.message_types import message_definition, typename_of
+from multicam_ego_motion.errors import UserError
+
+
+class Rosbag2Writer:
+    """Append messages to a new bag; `close()` (or the context manager) writes metadata.yaml."""
+
+    def __init__(self, path, compression: str = 'zstd', chunk_size: int = 4 * 1024 * 1024):
+        self.path = Path(path)
+        if self.path.exists() and any(self.path.iterdir()):
+            raise UserError(f'output bag folder {self.path} exists and is not empty')
+        self.path.mkdir(parents=True, exist_ok=True)
+        self.file_name = f'{self.path.name}_0.mcap'
+        self._stream = open(self.path / self.file_name, 'wb')
+        comp = {'zstd': CompressionType.ZSTD, 'lz4': CompressionType.LZ4,
+                'none': CompressionType.NONE}[compression]
+        self._writer = Writer(self._stream, chunk_size=chunk_size, compression=comp)
+        self._writer.start(profile='ros2', library='multicam_ego_motion')
+        self._schemas = {}
+        self._channels = {}
+        self._topics = {}  # name -> [type, count]
+        self._first = None
+        self._last = None
+        self._closed = False
+
+    def add_topic(self, topic: str, typename: str):
+        if topic in self._channels:
+            return self._channels[topic]
+        if typename not in self._schemas:
+            self._schemas[typename] = self._writer.register_schema(
+                name=typename, encoding='ros2msg',
+                data=message_definition(typename).encode())
+        self._channels[topic] = self._writer.register_channel(
+            topic=topic, message_encoding='cdr', schema_id=self._schemas[typename],
+            metadata={'offered_qos_profiles': ''})
+        self._topics[topic] = [typename, 0]
+        return self._channels[topic]
+
+    def write(self, topic: str, msg, time_ns: int):
+        """Serialize and append `msg`; `time_ns` is the receive (log) time."""
+        self.write_serialized(topic, typename_of(msg), serialize_message(msg), time_ns)
+
+    def write_serialized(self, topic: str, typename: str, data: bytes, time_ns: int):
+        channel = self.add_topic(topic, typename)
+        time_ns = int(time_ns)
+        self._writer.add_message(channel_id=channel, log_time=time_ns, publish_time=time_ns,
+                                 data=data, sequence=self._topics[topic][1])
+        self._topics[topic][1] += 1
+        self._first = time_ns if self._first is None else min(self._first, time_ns)
+        self._last = time_ns if self._last is None else max(self._last, time_ns)
+
+    def message_counts(self):
+        return {t: c for t, (_, c) in self._topics.items()}
+
+    def close(self):
+        if self._closed:
+            return
+        self._closed = True
+        self._writer.finish()
+        self._stream.flush()
+        os.fsync(self._stream.fileno())
+        self._stream.close()
+        self.write_metadata()
+
+    def write_metadata(self):
+        start = self._first or 0
+        duration = (self._last - self._first) if self._first is not None else 0
+        total = sum(c for _, c in self._topics.values())
+        topics = [{
+            'topic_metadata': {'name': name, 'type': typ, 'serialization_format': 'cdr',
+                               'offered_qos_profiles': '', 'type_description_hash': ''},
+            'message_count': count} for name, (typ, count) in self._topics.items()]
+        info = {'rosbag2_bagfile_information': {
+            'version': 8,
+            'storage_identifier': 'mcap',
+            'duration': {'nanoseconds': duration},
+            'starting_time': {'nanoseconds_since_epoch': start},
+            'message_count': total,
+            'topics_with_message_count': topics,
+            'compression_format': '',
+            'compression_mode': '',
+            'relative_file_paths': [self.file_name],
+            'files': [{'path': self.file_name,
+                       'starting_time': {'nanoseconds_since_epoch': start},
+                       'duration': {'nanoseconds': duration},
+                       'message_count': total}],
+            'custom_data': {},
+            'ros_distro': 'jazzy',
+        }}
+        tmp = self.path / 'metadata.yaml.tmp'
+        with open(tmp, 'w') as f:
+            yaml.safe_dump(info, f, sort_keys=False)
+        os.replace(tmp, self.path / 'metadata.yaml')
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
