@@ -1,0 +1,60 @@
+"""`ego-motion`: the one command a user runs. Subcommands live in their own modules.
+
+Each subcommand module exposes `configure_parser(parser)` and `run(args) -> int`. Bad input
+raises UserError, printed here as one line with a non-zero exit and no traceback.
+"""
+import argparse
+import importlib
+import os
+import sys
+
+from multicam_ego_motion.errors import UserError
+
+SUBCOMMANDS = {
+    'generate': ('multicam_ego_motion.scenarios.generator', 'render a scenario bag'),
+    'import-kitti': ('multicam_ego_motion.kitti_import', 'turn a KITTI sequence into a bag'),
+    'play': ('multicam_ego_motion.bag.player', 'publish a bag into a running graph'),
+    'record': ('multicam_ego_motion.bag.recorder', 'record topics into a bag'),
+    'evaluate': ('multicam_ego_motion.evaluation.evaluate', 'score an estimate against ground truth'),
+    'replay': ('multicam_ego_motion.replay', 'run the whole graph on a bag and score it'),
+    'bench': ('multicam_ego_motion.bench', 'measure sequential vs parallel timing'),
+}
+
+
+def _isolate_ros_network():
+    # A replay must never talk to a robot on the same network unless the user says so.
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+
+
+def build_parser():
+    parser = argparse.ArgumentParser(prog='ego-motion', description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest='command', required=True)
+    for name, (module, help_text) in SUBCOMMANDS.items():
+        p = sub.add_parser(name, help=help_text)
+        p.set_defaults(_module=module)
+        try:
+            importlib.import_module(module).configure_parser(p)
+        except ModuleNotFoundError as e:
+            if e.name != module:
+                raise
+            p.set_defaults(_missing=True)
+    return parser
+
+
+def main(argv=None) -> int:
+    _isolate_ros_network()
+    args = build_parser().parse_args(argv)
+    if getattr(args, '_missing', False):
+        print(f'ego-motion: error: {args.command} is not available in this build', file=sys.stderr)
+        return 2
+    try:
+        return int(importlib.import_module(args._module).run(args) or 0)
+    except UserError as e:
+        print(f'ego-motion: error: {e}', file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,155 @@
+"""The camera rig: names, topics and extrinsics (base_link -> camera optical frame).
+
+Loaded from a YAML rig file in config/ and validated, so that a bad rig is rejected at start
+with a message naming the camera and the problem (NaN, non-orthonormal rotation, ...).
+Intrinsics are not here: they come from each camera's CameraInfo.
+"""
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import List
+
+import numpy as np
+import yaml
+from scipy.spatial.transform import Rotation
+
+from multicam_ego_motion.errors import UserError
+
+MAX_CAMERAS = 8
+
+
+@dataclass
+class CameraMount:
+    name: str
+    image_topic: str
+    camera_info_topic: str
+    frame_id: str
+    translation: np.ndarray   # camera centre in base_link, metres
+    rotation: np.ndarray      # 3x3, columns are the optical axes expressed in base_link
+
+    @property
+    def T_base_cam(self) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = self.rotation
+        T[:3, 3] = self.translation
+        return T
+
+    def to_dict(self):
+        q = Rotation.from_matrix(self.rotation).as_quat()
+        return {'name': self.name, 'image_topic': self.image_topic,
+                'camera_info_topic': self.camera_info_topic, 'frame_id': self.frame_id,
+                'translation': [round(float(v), 9) for v in self.translation],
+                'rotation_xyzw': [round(float(v), 12) for v in q]}
+
+
+@dataclass
+class Rig:
+    cameras: List[CameraMount] = field(default_factory=list)
+    base_frame: str = 'base_link'
+
+    def camera(self, name: str) -> CameraMount:
+        for c in self.cameras:
+            if c.name == name:
+                return c
+        raise UserError(f'rig has no camera {name!r} (it has: {", ".join(self.names)})')
+
+    @property
+    def names(self):
+        return [c.name for c in self.cameras]
+
+    def to_dict(self):
+        return {'base_frame': self.base_frame, 'cameras': [c.to_dict() for c in self.cameras]}
+
+    def save(self, path):
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        with open(path, 'w') as f:
+            f.write('# Camera rig: extrinsics base_link -> <camera>_optical (REP-103/105).\n'
+                    '# translation: camera centre in base_link (m); rotation_xyzw: the optical\n'
+                    '# frame (z forward, x right, y down) expressed in base_link.\n'
+                    '# Intrinsics come from each camera\'s CameraInfo.\n')
+            yaml.safe_dump(self.to_dict(), f, sort_keys=False)
+
+
+def rotation_from_quaternion(q, where: str) -> np.ndarray:
+    q = np.asarray(q, dtype=float)
+    if q.shape != (4,) or not np.all(np.isfinite(q)):
+        raise UserError(f'{where}: rotation_xyzw must be 4 finite numbers, got {q.tolist()}')
+    n = np.linalg.norm(q)
+    if abs(n - 1.0) > 1e-3:
+        raise UserError(f'{where}: rotation_xyzw is not a unit quaternion (norm {n:.6f})')
+    return Rotation.from_quat(q / n).as_matrix()
+
+
+def validate_rotation_matrix(R, where: str) -> np.ndarray:
+    R = np.asarray(R, dtype=float)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        raise UserError(f'{where}: rotation must be a finite 3x3 matrix')
+    err = np.abs(R @ R.T - np.eye(3)).max()
+    if err > 1e-4 or np.linalg.det(R) < 0:
+        raise UserError(f'{where}: rotation is not orthonormal (|R R^T - I| = {err:.3g}, '
+                        f'det = {np.linalg.det(R):.4f})')
+    return R
+
+
+def parse_rig(data: dict, source: str = 'rig') -> Rig:
+    if not isinstance(data, dict) or not isinstance(data.get('cameras'), list):
+        raise UserError(f'{source}: expected a mapping with a list "cameras"')
+    cams = []
+    for i, c in enumerate(data['cameras']):
+        where = f'{source}: camera {c.get("name", i) if isinstance(c, dict) else i}'
+        if not isinstance(c, dict) or 'name' not in c:
+            raise UserError(f'{where}: every camera needs a name')
+        name = str(c['name'])
+        t = np.asarray(c.get('translation', [np.nan] * 3), dtype=float)
+        if t.shape != (3,) or not np.all(np.isfinite(t)):
+            raise UserError(f'{where}: translation must be 3 finite numbers')
+        if 'rotation' in c:
+            R = validate_rotation_matrix(c['rotation'], where)
+        else:
+            R = rotation_from_quaternion(c.get('rotation_xyzw', [np.nan] * 4), where)
+        cams.append(CameraMount(
+            name=name,
+            image_topic=c.get('image_topic', f'/{name}/image_raw'),
+            camera_info_topic=c.get('camera_info_topic', f'/{name}/camera_info'),
+            frame_id=c.get('frame_id', f'{name}_optical'),
+            translation=t, rotation=R))
+    if not 1 <= len(cams) <= MAX_CAMERAS:
+        raise UserError(f'{source}: a rig has 1 to {MAX_CAMERAS} cameras, this one has {len(cams)}')
+    if len(set(c.name for c in cams)) != len(cams):
+        raise UserError(f'{source}: camera names must be unique')
+    return Rig(cameras=cams, base_frame=data.get('base_frame', 'base_link'))
+
+
+def load_rig(path) -> Rig:
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f'rig file not found: {path}')
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise UserError(f'rig file {path} is not valid YAML ({e})') from None
+    return parse_rig(data, str(path))
+
+
+# Optical frame (z forward, x right, y down) looking along base_link +x, before yaw.
+_OPTICAL_FORWARD = np.array([[0.0, 0.0, 1.0],
+                             [-1.0, 0.0, 0.0],
+                             [0.0, -1.0, 0.0]])
+
+
+def optical_rotation(yaw: float, pitch: float = 0.0) -> np.ndarray:
+    """Rotation of an optical frame looking at heading `yaw` (rad, about base z), tilted by
+    `pitch` (rad, positive looks down)."""
+    return (Rotation.from_euler('z', yaw).as_matrix()
+            @ Rotation.from_euler('y', pitch).as_matrix() @ _OPTICAL_FORWARD)
+
+
+def paper_rig(radius: float = 0.25, height: float = 0.5) -> Rig:
+    """The paper's Fig. 1: two back-to-back pairs (front/back, left/right), axes perpendicular."""
+    cams = []
+    for name, yaw in (('front', 0.0), ('left', np.pi / 2), ('back', np.pi), ('right', -np.pi / 2)):
+        cams.append(CameraMount(
+            name=name, image_topic=f'/{name}/image_raw', camera_info_topic=f'/{name}/camera_info',
+            frame_id=f'{name}_optical',
+            translation=np.array([radius * np.cos(yaw), radius * np.sin(yaw), height]),
+            rotation=optical_rotation(yaw)))
+    return Rig(cameras=cams)
