@@ -1,0 +1,69 @@
+"""Rigid transforms as 4x4 numpy arrays, and the pose-error convention used everywhere.
+
+Convention (matches ROS PoseWithCovariance, 6x6 order x, y, z, rot x, rot y, rot z):
+a pose T = (R, p) of base_link in odom is perturbed as p = p_hat + dp and
+R = exp([dtheta]_x) R_hat, with dp and dtheta expressed in the odom frame.
+"""
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def make_T(R=None, p=None) -> np.ndarray:
+    T = np.eye(4)
+    if R is not None:
+        T[:3, :3] = R
+    if p is not None:
+        T[:3, 3] = p
+    return T
+
+
+def inv_T(T: np.ndarray) -> np.ndarray:
+    R, p = T[:3, :3], T[:3, 3]
+    return make_T(R.T, -R.T @ p)
+
+
+def rotvec_to_R(v) -> np.ndarray:
+    return Rotation.from_rotvec(np.asarray(v, dtype=float)).as_matrix()
+
+
+def R_to_rotvec(R) -> np.ndarray:
+    return Rotation.from_matrix(R).as_rotvec()
+
+
+def quat_xyzw_to_R(q) -> np.ndarray:
+    return Rotation.from_quat(np.asarray(q, dtype=float)).as_matrix()
+
+
+def R_to_quat_xyzw(R) -> np.ndarray:
+    return Rotation.from_matrix(R).as_quat()
+
+
+def skew(v) -> np.ndarray:
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def pose_error(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
+    """6-vector [dp, dtheta] with T_a = perturb(T_b, [dp, dtheta]) (odom-frame convention)."""
+    dp = T_a[:3, 3] - T_b[:3, 3]
+    dth = R_to_rotvec(T_a[:3, :3] @ T_b[:3, :3].T)
+    return np.concatenate([dp, dth])
+
+
+def perturb(T: np.ndarray, delta) -> np.ndarray:
+    """Apply a 6-vector [dp, dtheta] to T in the odom-frame convention."""
+    delta = np.asarray(delta, dtype=float)
+    return make_T(rotvec_to_R(delta[3:]) @ T[:3, :3], T[:3, 3] + delta[:3])
+
+
+def yaw_of(R: np.ndarray) -> float:
+    return float(np.arctan2(R[1, 0], R[0, 0]))
+
+
+def is_valid_covariance(C: np.ndarray, min_eig: float = 1e-12) -> bool:
+    """Finite, symmetric and positive definite: what may be published."""
+    if not np.all(np.isfinite(C)):
+        return False
+    if np.abs(C - C.T).max() > 1e-9 * max(1.0, np.abs(C).max()):
+        return False
+    return bool(np.linalg.eigvalsh(0.5 * (C + C.T)).min() > min_eig)
