@@ -1,0 +1,77 @@
+"""Camera arbiter (paper task T_k5): fuses one camera's quarter estimates into /<cam>/pose.
+
+Thin ROS shell over arbiter_node.quarter_fusion (robust, covariance-weighted). Lives in the
+camera's namespace; quarters publish /<cam>/q<l>/pose.
+"""
+import time
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.node import Node
+
+from arbiter_node.quarter_fusion import PARAMETERS as FUSION_PARAMETERS
+from arbiter_node.quarter_fusion import fuse_quarters
+from arbiter_node.stamp_sync import StampSynchronizer
+from multicam_ego_motion import diagnostics
+from multicam_ego_motion.errors import UserError
+from multicam_ego_motion.node_parameters import declare_from_table
+from multicam_ego_motion.pose_messages import estimate_to_msg, msg_to_estimate, ns_to_stamp
+from multicam_ego_motion.qos import RELIABLE
+
+NODE_PARAMETERS = {
+    'camera': ('front', 'name of the camera whose quarters this arbiter fuses', None, None),
+    'quarters': (4, 'number of quarter nodes of this camera', 1, 4),
+    'sync_timeout_s': (0.5, 'longest wait for all quarters of one frame', 0.0, 60.0),
+}
+
+
+class CameraArbiterNode(Node):
+    def __init__(self, **node_kwargs):
+        super().__init__('camera_arbiter', **node_kwargs)
+        p = declare_from_table(self, NODE_PARAMETERS)
+        self.fusion_params = declare_from_table(self, FUSION_PARAMETERS)
+        self.camera = p['camera']
+        sources = [f'q{i}' for i in range(1, p['quarters'] + 1)]
+        self.sync = StampSynchronizer(sources, p['sync_timeout_s'])
+        self.pub = self.create_publisher(PoseWithCovarianceStamped, 'pose', RELIABLE)
+        self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
+        for s in sources:
+            self.create_subscription(PoseWithCovarianceStamped, f'{s}/pose',
+                                     lambda m, s=s: self.on_quarter(s, m), RELIABLE)
+        self.create_timer(0.05, lambda: self.release(self.sync.poll(time.monotonic())))
+
+    def on_quarter(self, source, msg):
+        est = msg_to_estimate(msg, source=f'{self.camera}/{source}')
+        self.release(self.sync.add(source, est.stamp_ns, est, time.monotonic()))
+
+    def release(self, groups):
+        for g in groups:
+            t0 = time.perf_counter()
+            fused = fuse_quarters(list(g.items.values()), source=self.camera, **self.fusion_params)
+            self.pub.publish(estimate_to_msg(fused))
+            ms = (time.perf_counter() - t0) * 1e3
+            level = 'warn' if g.missing or not fused.informative else 'ok'
+            text = f'missing quarters: {", ".join(g.missing)}' if g.missing else fused.state
+            self.pub_diag.publish(diagnostics.array(ns_to_stamp(g.stamp_ns), [diagnostics.status(
+                f'ego_motion/{self.camera}/arbiter', level, text,
+                {'quarters': len(g.items), 'state': fused.state, 'arbiter_ms': ms},
+                hardware_id=self.camera)]))
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    try:
+        node = CameraArbiterNode()
+    except UserError as e:
+        print(f'camera_arbiter: error: {e}')
+        rclpy.try_shutdown()
+        return 2
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

@@ -1,0 +1,168 @@
+"""General arbiter (paper task T_5 / T_GA): median filter across cameras, metric scale, its
+own EKF; publishes /odom, TF odom -> base_link, /ego_motion/path and feeds the fused pose
+back to the quarter nodes (/ego_motion/fused_pose) for landmark triangulation.
+
+Thin ROS shell over arbiter_node.general_fusion.GeneralFusion. The feedback is published
+before /odom: a lockstep player waits for /odom, so by then every quarter has the feedback
+in flight.
+"""
+import time
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry, Path
+from rclpy.node import Node
+from std_srvs.srv import Trigger
+from tf2_msgs.msg import TFMessage
+
+from arbiter_node.general_fusion import PARAMETERS as FUSION_PARAMETERS
+from arbiter_node.general_fusion import GeneralFusion
+from arbiter_node.stamp_sync import StampSynchronizer
+from camera_pose_nodes.pose_estimate import PoseEstimate
+from multicam_ego_motion import diagnostics
+from multicam_ego_motion.errors import UserError
+from multicam_ego_motion.node_parameters import declare_from_table
+from multicam_ego_motion.pose_messages import (estimate_to_msg, fill_pose, msg_to_estimate,
+                                               ns_to_stamp, stamp_to_ns, transform_msg)
+from multicam_ego_motion.qos import RELIABLE
+from multicam_ego_motion.rig import load_rig
+from multicam_ego_motion.se3 import is_valid_covariance
+
+NODE_PARAMETERS = {
+    'rig_file': ('', 'rig YAML (camera names, topics, extrinsics base_link -> optical)', None, None),
+    'odom_frame': ('odom', 'REP-105 odometry frame', None, None),
+    'base_frame': ('base_link', 'REP-105 robot body frame', None, None),
+    'publish_tf': (True, 'broadcast odom -> base_link on /tf', None, None),
+    'use_wheel_odometry': (True, 'fuse /wheel/odom as a body-twist prior when it is published', None, None),
+    'wheel_odometry_topic': ('/wheel/odom', 'wheel odometry (nav_msgs/Odometry)', None, None),
+    'sync_timeout_s': (0.5, 'longest wait for all cameras of one frame', 0.0, 60.0),
+    'path_max_poses': (100000, 'longest /ego_motion/path kept', 1, 10000000),
+}
+
+
+class GeneralArbiterNode(Node):
+    def __init__(self, **node_kwargs):
+        super().__init__('general_arbiter', **node_kwargs)
+        p = declare_from_table(self, NODE_PARAMETERS)
+        fusion_params = declare_from_table(self, FUSION_PARAMETERS)
+        if not p['rig_file']:
+            raise UserError('general_arbiter: parameter rig_file is required')
+        self.rig = load_rig(p['rig_file'])
+        self.p = p
+        self.fusion = GeneralFusion(self.rig, fusion_params)
+        self.sync = StampSynchronizer(self.rig.names, p['sync_timeout_s'])
+        self.wheel = []                      # (stamp_ns, twist 6, cov 6x6), newest last
+        self.path = Path()
+        self.path.header.frame_id = p['odom_frame']
+        self.pub_fused = self.create_publisher(PoseWithCovarianceStamped, '/ego_motion/fused_pose', RELIABLE)
+        self.pub_odom = self.create_publisher(Odometry, '/odom', RELIABLE)
+        self.pub_tf = self.create_publisher(TFMessage, '/tf', RELIABLE)
+        self.pub_path = self.create_publisher(Path, '/ego_motion/path', RELIABLE)
+        self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
+        for cam in self.rig.cameras:
+            self.create_subscription(PoseWithCovarianceStamped, f'/{cam.name}/pose',
+                                     lambda m, n=cam.name: self.on_camera(n, m), RELIABLE)
+        if p['use_wheel_odometry']:
+            self.create_subscription(Odometry, p['wheel_odometry_topic'], self.on_wheel, RELIABLE)
+        self.create_service(Trigger, '~/reset', self.on_reset)
+        self.create_timer(0.05, lambda: self.release(self.sync.poll(time.monotonic())))
+        self.get_logger().info(f'fusing cameras {", ".join(self.rig.names)}')
+
+    def on_wheel(self, msg: Odometry):
+        tw = msg.twist.twist
+        twist = np.array([tw.linear.x, tw.linear.y, tw.linear.z, tw.angular.x, tw.angular.y, tw.angular.z])
+        cov = np.array(msg.twist.covariance, dtype=float).reshape(6, 6)
+        if np.all(np.isfinite(twist)) and np.all(np.isfinite(cov)):
+            self.wheel.append((stamp_to_ns(msg.header.stamp), twist, cov))
+            del self.wheel[:-200]
+
+    def wheel_at(self, stamp_ns):
+        # The newest wheel reading not after the frame; wheel odometry runs at the frame rate
+        # or faster, so anything older than 0.5 s means the wheels went silent.
+        for s, twist, cov in reversed(self.wheel):
+            if s <= stamp_ns:
+                return (twist, cov) if stamp_ns - s < 500_000_000 else None
+        return None
+
+    def on_camera(self, name, msg):
+        est = msg_to_estimate(msg, source=name)
+        self.release(self.sync.add(name, est.stamp_ns, est, time.monotonic()))
+
+    def on_reset(self, request, response):
+        self.fusion.reset()
+        self.path.poses = []
+        response.success = True
+        response.message = 'general arbiter reset: odometry restarts at the origin'
+        self.get_logger().warn(response.message)
+        return response
+
+    def release(self, groups):
+        for g in groups:
+            t0 = time.perf_counter()
+            fused = self.fusion.process(g.stamp_ns, g.items, wheel_twist=self.wheel_at(g.stamp_ns))
+            ms = (time.perf_counter() - t0) * 1e3
+            if not (np.all(np.isfinite(fused.T_odom_base)) and is_valid_covariance(fused.pose_covariance)
+                    and is_valid_covariance(fused.twist_covariance)):
+                self.get_logger().error(f'fused estimate at {g.stamp_ns} is not finite/PD: not published')
+                continue
+            self.publish(fused, g, ms)
+
+    def publish(self, fused, group, ms):
+        stamp = ns_to_stamp(fused.stamp_ns)
+        odom_frame, base_frame = self.p['odom_frame'], self.p['base_frame']
+        self.pub_fused.publish(estimate_to_msg(PoseEstimate(
+            fused.stamp_ns, fused.T_odom_base, fused.pose_covariance, source='fused',
+            state=fused.state), odom_frame))
+        odom = Odometry()
+        odom.header.stamp = stamp
+        odom.header.frame_id = odom_frame
+        odom.child_frame_id = base_frame
+        fill_pose(odom.pose.pose, fused.T_odom_base)
+        odom.pose.covariance = [float(v) for v in fused.pose_covariance.reshape(36)]
+        t = odom.twist.twist
+        t.linear.x, t.linear.y, t.linear.z, t.angular.x, t.angular.y, t.angular.z = (
+            float(v) for v in fused.twist)
+        odom.twist.covariance = [float(v) for v in fused.twist_covariance.reshape(36)]
+        if self.p['publish_tf']:
+            self.pub_tf.publish(TFMessage(transforms=[transform_msg(
+                fused.T_odom_base, odom_frame, base_frame, fused.stamp_ns)]))
+        ps = PoseStamped()
+        ps.header = odom.header
+        ps.pose = odom.pose.pose
+        self.path.header.stamp = stamp
+        self.path.poses.append(ps)
+        del self.path.poses[:-self.p['path_max_poses']]
+        self.pub_path.publish(self.path)
+        self.pub_odom.publish(odom)
+        missing = list(group.missing)
+        level = 'ok' if fused.state == 'tracking' and not missing else 'warn'
+        parts = [fused.state]
+        if missing:
+            parts.append(f'no estimate from cameras: {", ".join(missing)}')
+        if fused.cameras_rejected:
+            parts.append('rejected: ' + ', '.join(f'{k} ({v})' for k, v in fused.cameras_rejected.items()))
+        self.pub_diag.publish(diagnostics.array(stamp, [diagnostics.status(
+            'ego_motion/general_arbiter', level, '; '.join(parts),
+            {'state': fused.state, 'scale_observed': fused.scale_observed,
+             'cameras_used': ','.join(fused.cameras_used), 'cameras_missing': ','.join(missing),
+             'arbiter_ms': ms})]))
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    try:
+        node = GeneralArbiterNode()
+    except UserError as e:
+        print(f'general_arbiter: error: {e}')
+        rclpy.try_shutdown()
+        return 2
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

@@ -1,0 +1,155 @@
+"""Quarter node (paper task T_kl): KLT tracking and an EKF in one quarter of one camera.
+
+Thin ROS shell over camera_pose_nodes.quarter_estimator.QuarterEstimator. Subscribes the
+camera's image and CameraInfo and the general arbiter's fused pose (fed back for landmark
+triangulation); publishes `pose` (PoseWithCovarianceStamped, base_link in odom, in its own
+namespace /<cam>/q<l>) and its /diagnostics entry.
+
+Frame ordering: the estimate of frame t+1 needs the fused pose of frame t. An image that
+arrives before that feedback waits (up to `feedback_timeout_s`), so that replay in lockstep
+is deterministic and rate mode degrades gracefully instead of stalling.
+"""
+import time
+from collections import deque
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image
+
+from camera_pose_nodes.camera_model import CameraIntrinsics
+from camera_pose_nodes.image_conversion import image_to_gray
+from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, QuarterParams
+from multicam_ego_motion import diagnostics
+from multicam_ego_motion.errors import UserError
+from multicam_ego_motion.node_parameters import declare_from_table
+from multicam_ego_motion.pose_messages import estimate_to_msg, msg_to_estimate, stamp_to_ns
+from multicam_ego_motion.qos import RELIABLE, image_qos
+from multicam_ego_motion.rig import load_rig
+
+NODE_PARAMETERS = {
+    'camera': ('front', 'name of the camera in the rig file', None, None),
+    'quarter': (1, 'image quarter: 1 top-left, 2 top-right, 3 bottom-left, 4 bottom-right', 1, 4),
+    'rig_file': ('', 'rig YAML (camera names, topics, extrinsics base_link -> optical)', None, None),
+    'image_qos': ('sensor_data', 'image subscription QoS: sensor_data or reliable (lockstep replay)', None, None),
+    'fused_pose_topic': ('/ego_motion/fused_pose', 'general arbiter feedback topic', None, None),
+    'feedback_timeout_s': (0.5, 'longest wait for the previous frame\'s fused pose', 0.0, 60.0),
+}
+
+
+class QuarterNode(Node):
+    def __init__(self, **node_kwargs):
+        super().__init__('quarter_node', **node_kwargs)
+        p = declare_from_table(self, NODE_PARAMETERS)
+        self.params = QuarterParams(**declare_from_table(self, PARAMETERS))
+        if not p['rig_file']:
+            raise UserError(f'{self.get_fully_qualified_name()}: parameter rig_file is required')
+        self.camera = load_rig(p['rig_file']).camera(p['camera'])
+        self.quarter = int(p['quarter'])
+        self.source = f'{self.camera.name}/q{self.quarter}'
+        self.feedback_timeout_s = p['feedback_timeout_s']
+        self.estimator = None
+        self.intrinsics = None
+        self.info_error = None
+        self.pending = deque()          # images waiting for the previous frame's fused pose
+        self.last_processed_ns = None
+        self.last_fused_ns = None
+        self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'pose', RELIABLE)
+        self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
+        self.create_subscription(Image, self.camera.image_topic, self.on_image, image_qos(p['image_qos']))
+        self.create_subscription(CameraInfo, self.camera.camera_info_topic, self.on_info, RELIABLE)
+        self.create_subscription(PoseWithCovarianceStamped, p['fused_pose_topic'], self.on_fused, RELIABLE)
+        self.create_timer(0.05, self.drain)
+        self.get_logger().info(f'{self.source}: waiting for {self.camera.image_topic}')
+
+    # --- inputs -------------------------------------------------------------------------
+    def on_info(self, msg: CameraInfo):
+        if self.intrinsics is not None:
+            return
+        try:
+            self.intrinsics = CameraIntrinsics.from_camera_info(msg)
+        except (UserError, ValueError) as e:
+            if self.info_error != str(e):
+                self.info_error = str(e)
+                self.get_logger().error(f'{self.source}: bad CameraInfo on {self.camera.camera_info_topic}: {e}')
+                self.publish_diag(None, 'error', f'bad CameraInfo: {e}')
+            return
+        self.estimator = QuarterEstimator(self.camera, self.quarter, self.intrinsics, self.params,
+                                          (msg.width, msg.height))
+
+    def on_image(self, msg: Image):
+        self.pending.append((time.monotonic(), msg))
+        self.drain()
+
+    def on_fused(self, msg: PoseWithCovarianceStamped):
+        fused = msg_to_estimate(msg)
+        self.last_fused_ns = fused.stamp_ns
+        if self.estimator is not None:
+            self.estimator.apply_fused_pose(fused.stamp_ns, fused.T_odom_base, fused.covariance)
+        self.drain()
+
+    # --- processing ---------------------------------------------------------------------
+    def ready_for_next(self, first_wait) -> bool:
+        if self.last_processed_ns is None:
+            return True
+        if self.last_fused_ns is not None and self.last_fused_ns >= self.last_processed_ns:
+            return True
+        return time.monotonic() - first_wait > self.feedback_timeout_s
+
+    def drain(self):
+        while self.pending:
+            arrived, msg = self.pending[0]
+            if self.estimator is None:
+                if self.intrinsics is None and time.monotonic() - arrived > 2.0:
+                    self.pending.popleft()
+                    self.publish_diag(None, 'error', f'no CameraInfo on {self.camera.camera_info_topic}')
+                    continue
+                return
+            if not self.ready_for_next(arrived):
+                return
+            self.pending.popleft()
+            self.process(msg)
+
+    def process(self, msg: Image):
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        try:
+            gray = image_to_gray(msg, expected_size=self.estimator.image_size)
+        except (UserError, ValueError) as e:
+            self.get_logger().error(f'{self.source}: image rejected: {e}', throttle_duration_sec=5.0)
+            self.publish_diag(msg.header.stamp, 'error', f'image rejected: {e}')
+            return
+        est = self.estimator.process_image(stamp_ns, gray)
+        self.last_processed_ns = stamp_ns
+        self.pub_pose.publish(estimate_to_msg(est))
+        level = 'ok' if est.state == 'tracking' else 'warn'
+        self.publish_diag(msg.header.stamp, level, est.state, est)
+
+    def publish_diag(self, stamp, level, message, est=None):
+        values = {}
+        if est is not None:
+            values = {'state': est.state, 'features': est.n_features, 'landmarks': est.n_landmarks,
+                      'inliers': est.n_inliers}
+            values.update({f'{k}_ms': float(v) for k, v in est.stage_ms.items()})
+        if stamp is None:
+            stamp = self.get_clock().now().to_msg()
+        self.pub_diag.publish(diagnostics.array(stamp, [diagnostics.status(
+            f'ego_motion/{self.source}', level, message, values, hardware_id=self.camera.name)]))
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    try:
+        node = QuarterNode()
+    except UserError as e:
+        print(f'quarter_node: error: {e}')
+        rclpy.try_shutdown()
+        return 2
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

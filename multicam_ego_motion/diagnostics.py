@@ -1,0 +1,27 @@
+"""Build diagnostic_msgs entries for the graph's /diagnostics (features, stage times, states)."""
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+LEVEL = {'ok': DiagnosticStatus.OK, 'warn': DiagnosticStatus.WARN,
+         'error': DiagnosticStatus.ERROR, 'stale': DiagnosticStatus.STALE}
+
+
+def status(name: str, level: str, message: str, values: dict, hardware_id: str = '') -> DiagnosticStatus:
+    s = DiagnosticStatus()
+    s.level = LEVEL[level]
+    s.name = name
+    s.message = message
+    s.hardware_id = hardware_id
+    s.values = [KeyValue(key=str(k), value=(f'{v:.3f}' if isinstance(v, float) else str(v)))
+                for k, v in values.items()]
+    return s
+
+
+def array(stamp, statuses) -> DiagnosticArray:
+    msg = DiagnosticArray()
+    msg.header.stamp = stamp
+    msg.status = list(statuses)
+    return msg
+
+
+def values_of(st: DiagnosticStatus) -> dict:
+    return {kv.key: kv.value for kv in st.values}
