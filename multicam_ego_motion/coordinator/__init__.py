@@ -1,0 +1,1 @@
+"""The coordinator: places the graph's nodes on worker processes and keeps them running."""

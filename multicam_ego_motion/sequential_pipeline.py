@@ -1,0 +1,100 @@
+"""The whole estimator in one process, no ROS transport: the same cores the nodes wrap,
+called in the graph's order for every frame. It is the sequential baseline of the paper's
+comparison (Ts) and a fast way to score a parameter change on a bag.
+"""
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Dict, List
+
+import numpy as np
+
+from arbiter_node.general_fusion import GeneralFusion
+from arbiter_node.quarter_fusion import fuse_quarters
+from camera_pose_nodes.camera_model import CameraIntrinsics
+from camera_pose_nodes.image_conversion import image_to_gray
+from camera_pose_nodes.quarter_estimator import QuarterEstimator, QuarterParams
+from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
+from multicam_ego_motion.errors import UserError
+from multicam_ego_motion.pose_messages import stamp_to_ns
+
+
+@dataclass
+class SequentialResult:
+    fused: List[object] = field(default_factory=list)                  # FusedEstimate per frame
+    cameras: Dict[str, list] = field(default_factory=lambda: defaultdict(list))
+    quarters: Dict[str, list] = field(default_factory=lambda: defaultdict(list))
+    frame_ms: List[float] = field(default_factory=list)
+    stage_ms: Dict[str, List[float]] = field(default_factory=lambda: defaultdict(list))
+
+
+def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: dict = None,
+                   use_wheel: bool = True, max_frames: int = None, progress=None) -> SequentialResult:
+    reader = Rosbag2Reader(bag_path)
+    present = [c for c in rig.cameras if c.image_topic in reader.topics]
+    if not present:
+        raise UserError(f'bag {bag_path} has none of the rig\'s image topics '
+                        f'({", ".join(c.image_topic for c in rig.cameras)})')
+    qp = QuarterParams(**(quarter_params or {}))
+    fusion = GeneralFusion(rig, fusion_params or {})
+    topics = [c.image_topic for c in present] + [c.camera_info_topic for c in present
+                                                  if c.camera_info_topic in reader.topics]
+    wheel_topic = '/wheel/odom' if use_wheel and '/wheel/odom' in reader.topics else None
+    if wheel_topic:
+        topics.append(wheel_topic)
+    by_topic = {c.image_topic: c for c in present}
+    info_topic = {c.camera_info_topic: c for c in present}
+    estimators = {}   # camera name -> [QuarterEstimator x4]
+    result = SequentialResult()
+    frame = {}        # camera name -> gray image of the current stamp
+    frame_stamp = None
+    wheel = None
+
+    def flush():
+        if not frame:
+            return
+        t0 = time.perf_counter()
+        cams = {}
+        for name, gray in frame.items():
+            ests = [q.process_image(frame_stamp, gray) for q in estimators[name]]
+            for e in ests:
+                result.quarters[e.source].append(e)
+                for k, v in e.stage_ms.items():
+                    result.stage_ms[k].append(v)
+            cams[name] = fuse_quarters(ests, source=name)
+            result.cameras[name].append(cams[name])
+        fused = fusion.process(frame_stamp, cams, wheel_twist=wheel)
+        for qs in estimators.values():
+            for q in qs:
+                q.apply_fused_pose(frame_stamp, fused.T_odom_base, fused.pose_covariance)
+        result.fused.append(fused)
+        result.frame_ms.append((time.perf_counter() - t0) * 1e3)
+        frame.clear()
+        if progress:
+            progress.update(1)
+
+    for topic, msg, _ in reader.decoded(topics):
+        if topic == wheel_topic:
+            tw = msg.twist.twist
+            wheel = (np.array([tw.linear.x, tw.linear.y, tw.linear.z, tw.angular.x, tw.angular.y, tw.angular.z]),
+                     np.array(msg.twist.covariance).reshape(6, 6))
+            continue
+        if topic in info_topic:
+            cam = info_topic[topic]
+            if cam.name not in estimators:
+                intr = CameraIntrinsics.from_camera_info(msg)
+                estimators[cam.name] = [QuarterEstimator(cam, q, intr, qp, (msg.width, msg.height))
+                                        for q in range(1, 5)]
+            continue
+        cam = by_topic[topic]
+        stamp = stamp_to_ns(msg.header.stamp)
+        if frame_stamp is not None and stamp != frame_stamp:
+            flush()
+            if max_frames and len(result.fused) >= max_frames:
+                break
+        frame_stamp = stamp
+        if cam.name in estimators:
+            frame[cam.name] = image_to_gray(msg, expected_size=estimators[cam.name][0].image_size)
+    if not (max_frames and len(result.fused) >= max_frames):
+        flush()
+    return result
