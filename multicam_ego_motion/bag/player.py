@@ -389,9 +389,7 @@ def run(args) -> int:
     import rclpy
     rclpy.init()
     try:
-        result = player.play()
+        player.play()  # logs the summary line through the ROS logger
     finally:
         rclpy.try_shutdown()
-    print(f'played {result.messages} messages in {result.frames} frames '
-          f'in {result.wall_time_s:.2f} s', file=sys.stderr)
     return 0
