@@ -35,8 +35,8 @@ def build_parser():
         try:
             importlib.import_module(module).configure_parser(p)
         except ModuleNotFoundError as e:
-            if e.name != module:
-                raise
+            if not (module == e.name or module.startswith(e.name + '.')):
+                raise  # a dependency of the module is missing, not the module (or its package)
             p.set_defaults(_missing=True)
     return parser
 

@@ -69,6 +69,8 @@ class Rosbag2Reader:
         self.files = _mcap_files(self.path)
         self.topics = {}   # name -> typename
         self.counts = {}   # name -> message count
+        self.start_ns = None  # log time of the first and last message (None: empty bag)
+        self.end_ns = None
         for f in self.files:
             try:
                 with open(f, 'rb') as stream:
@@ -83,6 +85,11 @@ class Rosbag2Reader:
                 self.topics[ch.topic] = schema.name if schema else ''
                 n = summary.statistics.channel_message_counts.get(cid, 0) if summary.statistics else 0
                 self.counts[ch.topic] = self.counts.get(ch.topic, 0) + n
+            stats = summary.statistics
+            if stats is not None and stats.message_count:
+                self.start_ns = min(self.start_ns or stats.message_start_time,
+                                    stats.message_start_time)
+                self.end_ns = max(self.end_ns or 0, stats.message_end_time)
 
     def require(self, topics):
         """Raise a UserError naming every requested topic the bag does not hold."""

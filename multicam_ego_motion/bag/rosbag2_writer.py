@@ -64,6 +64,17 @@ class Rosbag2Writer:
     def message_counts(self):
         return {t: c for t, (_, c) in self._topics.items()}
 
+    def flush(self):
+        """Push buffered messages to the OS as a finished chunk and refresh metadata.yaml.
+
+        A process killed after this (SIGKILL) leaves a .mcap without summary/footer whose
+        chunks up to here are intact: recoverable with `mcap recover`, not readable as is.
+        """
+        if self._closed:
+            return
+        self._writer.flush()
+        self.write_metadata()
+
     def close(self):
         if self._closed:
             return

@@ -1,0 +1,395 @@
+"""`ego-motion play`: publish a rosbag2 (MCAP) bag into a running graph.
+
+Two modes:
+
+* rate (default, `--rate R`): a frame recorded t seconds after the start of the played
+  window is published t / R seconds of wall time after playback starts, like
+  `ros2 bag play --rate R`. Used to measure real-time behaviour, latency and drops.
+* lockstep (`--lockstep`): frames are published as fast as the graph finishes them. After
+  each *trigger frame* (a frame holding a message on a lockstep topic; default: every
+  `*/image_raw` topic) the player waits for the graph's acknowledgement on `--ack-topic`:
+  a message whose header.stamp is at or after the frame's stamp (the newest header stamp
+  among the frame's trigger messages), or, for an ack type without a header, any message
+  received after the frame was published. No acknowledgement within `--ack-timeout` is an
+  error that names the frame. Deterministic and drop-free; used by tests and `replay`.
+
+A *frame* is a run of consecutive messages with the same log time: a rig driver (and the
+scenario generator) stamps and logs the images of one exposure together, so the cameras of
+one frame are always published together, before any acknowledgement is awaited.
+
+Messages are published as the serialized bytes stored in the bag (rclpy's
+`Publisher.publish` accepts bytes), never decoded. Publishers are RELIABLE (they match
+reliable and best-effort subscribers), `/tf_static` is TRANSIENT_LOCAL. With `--clock`
+(default) a rosgraph_msgs/Clock carrying the frame's log time is published before each frame,
+so nodes with use_sim_time follow the bag. Before the first frame the player listens to the
+graph for `--discovery` seconds (default 1; a fresh process knows no subscriber before
+discovery ran) and then waits until every subscriber the graph has on a played topic is
+matched to its publisher, so nothing is published into the void (lockstep additionally requires a publisher on the ack topic and
+a subscriber on every trigger topic).
+
+Python API (used in-process by `replay`)::
+
+    player = BagPlayer('bags/default', PlayOptions(lockstep=True, ack_topic='/odom'))
+    result = player.play(node_or_context)   # -> PlaybackResult
+
+`BagPlayer(...)` opens and checks the bag and options (UserError on bad input) without
+touching ROS. `play()` accepts:
+  * None: a node is created in rclpy's default context (rclpy.init() must have run);
+  * an rclpy Context: a node is created in that context and destroyed afterwards;
+  * an rclpy Node: its publishers/subscription are created on it and destroyed afterwards.
+    If the node is not in an executor, `play` spins it itself while it waits; if it is
+    (e.g. a MultiThreadedExecutor spinning in another thread), `play` only waits and relies
+    on that executor to deliver the acknowledgements.
+It returns when the last frame was published (and, in lockstep, acknowledged), and raises
+UserError on an acknowledgement timeout or a missing graph.
+"""
+import argparse
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from fnmatch import fnmatchcase
+from typing import Dict, Iterable, Iterator, List, Optional
+
+from multicam_ego_motion.bag.rosbag2_reader import BagMessage, Rosbag2Reader
+from multicam_ego_motion.errors import UserError
+
+DEFAULT_LOCKSTEP_PATTERN = '*/image_raw'
+NS_PER_S = 1_000_000_000
+
+
+@dataclass
+class PlayOptions:
+    lockstep: bool = False
+    rate: float = 1.0
+    ack_topic: str = '/odom'
+    ack_timeout_s: float = 30.0
+    lockstep_topics: Optional[List[str]] = None   # bag topic names; None: every */image_raw
+    remap: Dict[str, str] = field(default_factory=dict)  # bag topic -> published topic
+    start_offset_s: float = 0.0
+    duration_s: Optional[float] = None
+    topics: Optional[List[str]] = None            # bag topics to play; None: all
+    clock: bool = True
+    progress: Optional[bool] = None               # None: only when stderr is a terminal
+    discovery_s: float = 1.0          # listen to the graph this long before the first frame
+    discovery_timeout_s: float = 5.0  # then wait at most this long for subscribers to match
+
+
+@dataclass
+class Frame:
+    index: int
+    log_time_ns: int
+    messages: List[BagMessage]
+    stamp_ns: Optional[int]  # stamp the ack must reach; None: not a trigger frame
+
+    @property
+    def is_trigger(self) -> bool:
+        return self.stamp_ns is not None
+
+
+@dataclass
+class PlaybackResult:
+    frames: int = 0
+    messages: int = 0
+    per_topic: Dict[str, int] = field(default_factory=dict)  # published topic -> count
+    wall_time_s: float = 0.0
+
+
+def parse_remaps(items: Iterable[str]) -> Dict[str, str]:
+    remap = {}
+    for item in items or ():
+        src, sep, dst = item.partition(':=')
+        if not sep or not src or not dst:
+            raise UserError(f'bad remap {item!r}: expected FROM:=TO')
+        remap[src] = dst
+    return remap
+
+
+def group_frames(messages: Iterable[BagMessage], trigger_topics) -> Iterator[Frame]:
+    """Group log-time-ordered messages into frames (runs with equal log time)."""
+    from multicam_ego_motion.bag.header_stamp import has_header, header_stamp_ns
+    trigger_topics = set(trigger_topics)
+    batch: List[BagMessage] = []
+    index = 0
+
+    def finish():
+        stamps = [header_stamp_ns(m.data) if has_header(m.typename) else m.log_time_ns
+                  for m in batch if m.topic in trigger_topics]
+        return Frame(index, batch[0].log_time_ns, batch, max(stamps) if stamps else None)
+
+    for msg in messages:
+        if batch and msg.log_time_ns != batch[0].log_time_ns:
+            yield finish()
+            index += 1
+            batch = []
+        batch.append(msg)
+    if batch:
+        yield finish()
+
+
+class BagPlayer:
+    """A bag checked against the options, ready to be played (see the module docstring)."""
+
+    def __init__(self, bag, options: Optional[PlayOptions] = None):
+        self.options = opts = options or PlayOptions()
+        if opts.rate <= 0:
+            raise UserError(f'--rate must be positive (got {opts.rate})')
+        if opts.start_offset_s < 0 or (opts.duration_s is not None and opts.duration_s <= 0):
+            raise UserError('--start-offset must be >= 0 and --duration > 0')
+        self.reader = Rosbag2Reader(bag)
+        if opts.topics:
+            self.reader.require(opts.topics)
+        self.topics = list(opts.topics) if opts.topics else sorted(self.reader.topics)
+        unknown_remaps = [t for t in opts.remap if t not in self.topics]
+        if unknown_remaps:
+            raise UserError(f'--remap names topics that are not played: {", ".join(unknown_remaps)}')
+        self.published_name = {t: opts.remap.get(t, t) for t in self.topics}
+        self.trigger_topics = self._trigger_topics()
+        if opts.lockstep and opts.ack_topic in self.published_name.values():
+            raise UserError(f'the ack topic {opts.ack_topic} is also played from the bag: '
+                            'the player would acknowledge itself (use --topics or --remap)')
+        if self.reader.start_ns is None:
+            raise UserError(f'bag {self.reader.path} holds no messages')
+        self.start_ns = self.reader.start_ns + round(opts.start_offset_s * NS_PER_S)
+        if self.start_ns > self.reader.end_ns:
+            length = (self.reader.end_ns - self.reader.start_ns) / NS_PER_S
+            raise UserError(f'--start-offset {opts.start_offset_s} s is past the end of the '
+                            f'bag ({length:.3f} s long)')
+        self.end_ns = (self.start_ns + round(opts.duration_s * NS_PER_S)
+                       if opts.duration_s is not None else None)  # exclusive
+        self._cond = threading.Condition()
+        self._ack_count = 0
+        self._ack_stamp_ns = None
+        self._ack_stamped = False
+
+    def _trigger_topics(self):
+        opts = self.options
+        if not opts.lockstep:
+            return []
+        if opts.lockstep_topics:
+            missing = [t for t in opts.lockstep_topics if t not in self.topics]
+            if missing:
+                raise UserError(f'lockstep topic(s) not played: {", ".join(missing)}')
+            return list(opts.lockstep_topics)
+        found = [t for t in self.topics if fnmatchcase(t, DEFAULT_LOCKSTEP_PATTERN)]
+        if not found:
+            raise UserError(f'lockstep: no {DEFAULT_LOCKSTEP_PATTERN} topic among the played '
+                            'topics; name the trigger topics with --lockstep-topics')
+        return found
+
+    def frames(self) -> Iterator[Frame]:
+        """The frames of the selected window and topics, in order (no ROS needed)."""
+        msgs = self.reader.messages(self.topics, start_ns=self.start_ns, end_ns=self.end_ns)
+        return group_frames(msgs, self.trigger_topics)
+
+    # ---- the rclpy shell ----------------------------------------------------------------
+
+    def play(self, node_or_context=None) -> PlaybackResult:
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        own_node = not isinstance(node_or_context, Node)
+        node = (Node('ego_motion_player', context=node_or_context) if own_node
+                else node_or_context)
+        executor = None
+        if node.executor is None:
+            executor = SingleThreadedExecutor(context=node.context)
+            executor.add_node(node)
+        self._executor = executor
+        self._t_created = time.monotonic()
+        entities = []
+        try:
+            return self._play_on(node, entities)
+        finally:
+            if executor is not None:
+                executor.remove_node(node)
+                executor.shutdown(timeout_sec=0)
+            for kind, entity in entities:
+                (node.destroy_publisher if kind == 'pub' else node.destroy_subscription)(entity)
+            if own_node:
+                node.destroy_node()
+
+    def _play_on(self, node, entities) -> PlaybackResult:
+        from rclpy.serialization import serialize_message
+        from rosgraph_msgs.msg import Clock
+
+        from multicam_ego_motion.bag.message_types import message_class
+        from multicam_ego_motion.bag.topic_qos import publishing_qos
+        opts, log = self.options, node.get_logger()
+        publishers = {}
+        for topic in self.topics:
+            name = self.published_name[topic]
+            pub = node.create_publisher(message_class(self.reader.topics[topic]), name,
+                                        publishing_qos(name))
+            entities.append(('pub', pub))
+            publishers[topic] = pub
+        clock_pub = None
+        if opts.clock:
+            clock_pub = node.create_publisher(Clock, '/clock', publishing_qos('/clock', depth=10))
+            entities.append(('pub', clock_pub))
+        if opts.lockstep:
+            entities.append(('sub', self._subscribe_ack(node)))
+        self._wait_for_subscribers(node, publishers)
+
+        result = PlaybackResult(per_topic={self.published_name[t]: 0 for t in self.topics})
+        t0_wall = time.monotonic()
+        end_ns = self.end_ns if self.end_ns is not None else self.reader.end_ns + 1
+        window_s = (min(end_ns, self.reader.end_ns + 1) - self.start_ns) / NS_PER_S
+        bar = _progress_bar(window_s, opts.progress)
+        done_s = 0.0
+        clock = Clock()
+        try:
+            for frame in self.frames():
+                if not opts.lockstep:
+                    due = t0_wall + (frame.log_time_ns - self.start_ns) / NS_PER_S / opts.rate
+                    self._wait(lambda: False, due - time.monotonic())
+                with self._cond:
+                    acks_before = self._ack_count
+                if clock_pub is not None:
+                    clock.clock.sec, clock.clock.nanosec = divmod(frame.log_time_ns, NS_PER_S)
+                    clock_pub.publish(serialize_message(clock))
+                for msg in frame.messages:
+                    publishers[msg.topic].publish(bytes(msg.data))
+                    result.per_topic[self.published_name[msg.topic]] += 1
+                result.messages += len(frame.messages)
+                result.frames += 1
+                if opts.lockstep and frame.is_trigger:
+                    self._await_ack(frame, acks_before)
+                now_s = (frame.log_time_ns - self.start_ns) / NS_PER_S
+                bar.update(now_s - done_s)
+                done_s = now_s
+        finally:
+            bar.close()
+        result.wall_time_s = time.monotonic() - t0_wall
+        log.info(f'played {result.messages} messages in {result.frames} frames '
+                 f'in {result.wall_time_s:.2f} s')
+        return result
+
+    def _subscribe_ack(self, node):
+        from multicam_ego_motion.bag.header_stamp import has_header, header_stamp_ns
+        from multicam_ego_motion.bag.message_types import message_class
+        from multicam_ego_motion.bag.topic_qos import subscribing_qos
+        ack = self.options.ack_topic
+        if not self._wait(lambda: node.get_publishers_info_by_topic(ack),
+                          self.options.ack_timeout_s):
+            raise UserError(f'lockstep: nothing publishes the ack topic {ack} within '
+                            f'{self.options.ack_timeout_s:g} s (is the graph running?)')
+        infos = node.get_publishers_info_by_topic(ack)
+        typename = infos[0].topic_type
+        stamped = self._ack_stamped = has_header(typename)
+
+        def on_ack(data):
+            with self._cond:
+                self._ack_count += 1
+                if stamped:
+                    stamp = header_stamp_ns(data)
+                    if self._ack_stamp_ns is None or stamp > self._ack_stamp_ns:
+                        self._ack_stamp_ns = stamp
+                self._cond.notify_all()
+
+        return node.create_subscription(message_class(typename), ack, on_ack,
+                                        subscribing_qos(i.qos_profile for i in infos), raw=True)
+
+    def _wait_for_subscribers(self, node, publishers):
+        """Wait until every known subscriber of a played topic is matched to our publisher."""
+        opts = self.options
+        if opts.lockstep:
+            triggers = [publishers[t] for t in self.trigger_topics]
+            if not self._wait(lambda: all(p.get_subscription_count() for p in triggers),
+                              opts.ack_timeout_s):
+                raise UserError('lockstep: nothing subscribes to '
+                                f'{", ".join(self.published_name[t] for t in self.trigger_topics)}'
+                                f' within {opts.ack_timeout_s:g} s')
+
+        def all_matched():
+            return all(pub.get_subscription_count() >= node.count_subscribers(pub.topic_name)
+                       for pub in publishers.values())
+        # A fresh participant knows no subscriber yet: listen first, then wait for the matches.
+        self._wait(lambda: False, opts.discovery_s - (time.monotonic() - self._t_created))
+        if not self._wait(all_matched, opts.discovery_timeout_s):
+            node.get_logger().warning('not every subscriber matched before playback started')
+
+    def _await_ack(self, frame: Frame, acks_before: int):
+        opts = self.options
+
+        def acknowledged():
+            if self._ack_stamped:
+                return self._ack_stamp_ns is not None and self._ack_stamp_ns >= frame.stamp_ns
+            return self._ack_count > acks_before  # ack type without a header
+
+        if not self._wait(acknowledged, opts.ack_timeout_s):
+            topics = sorted({m.topic for m in frame.messages if m.topic in self.trigger_topics})
+            raise UserError(
+                f'lockstep: frame {frame.index} (stamp {frame.stamp_ns / NS_PER_S:.9f} s, '
+                f'{", ".join(topics)}) was not acknowledged on {opts.ack_topic} within '
+                f'{opts.ack_timeout_s:g} s')
+
+    def _wait(self, predicate, timeout_s: float) -> bool:
+        """Spin (own executor) or sleep (someone else spins) until predicate() or timeout."""
+        deadline = time.monotonic() + max(timeout_s, 0.0)
+        while True:
+            with self._cond:
+                if predicate():
+                    return True
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            if self._executor is not None:
+                self._executor.spin_once(timeout_sec=min(remaining, 0.05))
+            else:
+                with self._cond:
+                    self._cond.wait(min(remaining, 0.05))
+
+
+def _progress_bar(total_s: float, enabled: Optional[bool]):
+    from tqdm import tqdm
+    return tqdm(total=round(total_s, 3), unit='bag s', file=sys.stderr, leave=False,
+                disable=None if enabled is None else not enabled,
+                bar_format='{l_bar}{bar}| {n:.1f}/{total:.1f} bag s [{elapsed}<{remaining}]')
+
+
+# ---- command line ---------------------------------------------------------------------
+
+def configure_parser(parser: argparse.ArgumentParser):
+    parser.add_argument('bag', help='bag folder (metadata.yaml + .mcap) or .mcap file')
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument('--lockstep', action='store_true',
+                      help='publish the next frame when the graph acknowledged the last one')
+    mode.add_argument('--rate', type=float, default=1.0, help='playback rate (default 1.0)')
+    parser.add_argument('--ack-topic', default='/odom',
+                        help='lockstep: topic whose header.stamp acknowledges a frame')
+    parser.add_argument('--ack-timeout', type=float, default=30.0, metavar='S',
+                        help='lockstep: seconds to wait for an acknowledgement (default 30)')
+    parser.add_argument('--lockstep-topics', nargs='+', metavar='TOPIC',
+                        help=f'lockstep trigger topics (default: every {DEFAULT_LOCKSTEP_PATTERN})')
+    parser.add_argument('--remap', nargs='+', default=[], metavar='FROM:=TO',
+                        help='publish bag topic FROM as TO')
+    parser.add_argument('--start-offset', type=float, default=0.0, metavar='S',
+                        help='skip the first S seconds of the bag')
+    parser.add_argument('--duration', type=float, metavar='S',
+                        help='play only S seconds (from the start offset)')
+    parser.add_argument('--topics', nargs='+', metavar='TOPIC', help='play only these topics')
+    parser.add_argument('--discovery', type=float, default=1.0, metavar='S',
+                        help='listen to the graph S seconds before the first frame (default 1)')
+    parser.add_argument('--clock', action=argparse.BooleanOptionalAction, default=True,
+                        help='publish /clock with the bag time (default on)')
+    parser.add_argument('--progress', action=argparse.BooleanOptionalAction, default=None,
+                        help='progress bar on stderr (default: when stderr is a terminal)')
+
+
+def options_from_args(args) -> PlayOptions:
+    return PlayOptions(lockstep=args.lockstep, rate=args.rate, ack_topic=args.ack_topic,
+                       ack_timeout_s=args.ack_timeout, lockstep_topics=args.lockstep_topics,
+                       remap=parse_remaps(args.remap), start_offset_s=args.start_offset,
+                       duration_s=args.duration, topics=args.topics, clock=args.clock,
+                       progress=args.progress, discovery_s=args.discovery)
+
+
+def run(args) -> int:
+    player = BagPlayer(args.bag, options_from_args(args))  # bad input fails before ROS starts
+    import rclpy
+    rclpy.init()
+    try:
+        player.play()  # logs the summary line through the ROS logger
+    finally:
+        rclpy.try_shutdown()
+    return 0

@@ -1,0 +1,1 @@
+"""Score an estimated trajectory against ground truth (`ego-motion evaluate`)."""

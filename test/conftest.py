@@ -1,0 +1,54 @@
+"""Shared test setup: an isolated ROS 2 network per test process, rclpy, the CLI runner."""
+import os
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+# Before anything imports rclpy: this process (and the subprocesses it starts, which inherit
+# the environment) talk only to each other.
+os.environ['ROS_DOMAIN_ID'] = str(1 + os.getpid() % 100)
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+
+
+def run_cli(*args, timeout=60, **kw):
+    """Run `ego-motion ARGS` as `python -m multicam_ego_motion.cli`, capture its output."""
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
+    return subprocess.run([sys.executable, '-m', 'multicam_ego_motion.cli', *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout, env=env, **kw)
+
+
+def start_cli(*args):
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
+    return subprocess.Popen([sys.executable, '-m', 'multicam_ego_motion.cli', *map(str, args)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+
+
+@pytest.fixture(scope='session')
+def rclpy_context():
+    import rclpy
+    rclpy.init()
+    yield rclpy.get_default_context()
+    rclpy.try_shutdown()
+
+
+class SpinningNode:
+    """A test node spun by its own executor in a background thread."""
+
+    def __init__(self, name):
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        self.node = Node(name)
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self.lock = threading.Lock()
+        self._thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self._thread.start()
+
+    def close(self):
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()

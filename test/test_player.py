@@ -1,0 +1,179 @@
+"""The bag player: lockstep delivery, remap, time window, rate timing, bad input."""
+import re
+import time
+
+import pytest
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String
+
+from conftest import SpinningNode, run_cli
+from multicam_ego_motion.bag.player import BagPlayer, PlayOptions, parse_remaps
+from multicam_ego_motion.bag.rosbag2_writer import Rosbag2Writer
+from multicam_ego_motion.errors import UserError
+
+T0 = 1_700_000_000 * 10**9
+PERIOD = 100_000_000          # 10 frames per second
+N_FRAMES = 11                 # 0.0 .. 1.0 s
+CAMERAS = ('/cam_front', '/cam_back')
+
+
+def _stamped(cls, t_ns):
+    msg = cls()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(t_ns, 10**9)
+    return msg
+
+
+@pytest.fixture(scope='module')
+def bag(tmp_path_factory):
+    """Per frame: two 4x4 images + one camera_info (same log time); a chatter message in between."""
+    path = tmp_path_factory.mktemp('bags') / 'synthetic'
+    with Rosbag2Writer(path) as w:
+        for k in range(N_FRAMES):
+            t = T0 + k * PERIOD
+            for cam in CAMERAS:
+                img = _stamped(Image, t)
+                img.height = img.width = 4
+                img.encoding, img.step, img.data = 'mono8', 4, bytes([k] * 16)
+                w.write(f'{cam}/image_raw', img, t)
+            w.write('/cam_front/camera_info', _stamped(CameraInfo, t), t)
+            w.write('/chatter', String(data=f'msg {k}'), t + PERIOD // 2)
+    return path
+
+
+def _key(topic, msg):
+    """What identifies a message of the synthetic bag."""
+    if isinstance(msg, String):
+        return msg.data
+    return msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+
+
+def _expected(bag, player_options=None):
+    player = BagPlayer(bag, player_options or PlayOptions())
+    out = {}
+    for frame in player.frames():
+        for m in frame.messages:
+            out.setdefault(m.topic, []).append(_key(m.topic, m.decode()))
+    return out
+
+
+class Recipient(SpinningNode):
+    """Subscribes to every played topic; in lockstep, acks a frame once all cameras arrived."""
+
+    TYPES = {'/chatter': String, '/talk': String, '/cam_front/camera_info': CameraInfo,
+             **{f'{c}/image_raw': Image for c in CAMERAS}}
+
+    def __init__(self, topics, ack=False):
+        super().__init__('recipient')
+        from nav_msgs.msg import Odometry
+        self.received = {t: [] for t in topics}
+        self.images_per_stamp = {}
+        self.ack_pub = self.node.create_publisher(Odometry, '/odom', 10) if ack else None
+        qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+        for t in topics:
+            self.node.create_subscription(self.TYPES[t], t, lambda m, t=t: self.on_msg(t, m), qos)
+
+    def on_msg(self, topic, msg):
+        from nav_msgs.msg import Odometry
+        with self.lock:
+            self.received[topic].append(_key(topic, msg))
+            if self.ack_pub is None or not topic.endswith('/image_raw'):
+                return
+            stamp = _key(topic, msg)
+            self.images_per_stamp[stamp] = self.images_per_stamp.get(stamp, 0) + 1
+            if self.images_per_stamp[stamp] == len(CAMERAS):
+                odom = Odometry()
+                odom.header.stamp = msg.header.stamp
+                self.ack_pub.publish(odom)
+
+
+def test_frames_group_messages_by_log_time(bag):
+    frames = list(BagPlayer(bag, PlayOptions(lockstep=True)).frames())
+    assert len(frames) == 2 * N_FRAMES  # camera frames and chatter frames alternate
+    cam = frames[0]
+    assert sorted(m.topic for m in cam.messages) == [
+        '/cam_back/image_raw', '/cam_front/camera_info', '/cam_front/image_raw']
+    assert cam.stamp_ns == T0 and cam.is_trigger
+    assert not frames[1].is_trigger and frames[1].messages[0].topic == '/chatter'
+
+
+def test_start_offset_and_duration_select_the_window(bag):
+    # [0.25 s, 0.75 s): camera frames 3..7 at 0.3..0.7 s, chatter 2..6 at 0.25..0.65 s
+    player = BagPlayer(bag, PlayOptions(start_offset_s=0.25, duration_s=0.5))
+    got = {}
+    for frame in player.frames():
+        for m in frame.messages:
+            got.setdefault(m.topic, []).append(_key(m.topic, m.decode()))
+    assert got['/cam_front/image_raw'] == [T0 + k * PERIOD for k in range(3, 8)]
+    assert got['/chatter'] == [f'msg {k}' for k in range(2, 7)]
+
+
+def test_lockstep_delivers_every_message_once_in_order(bag, rclpy_context):
+    expected = _expected(bag)
+    recipient = Recipient(list(expected), ack=True)
+    try:
+        proc = run_cli('play', bag, '--lockstep', '--ack-timeout', '10', timeout=60)
+        assert proc.returncode == 0, proc.stderr
+        time.sleep(0.3)  # let the last non-trigger messages arrive
+        with recipient.lock:
+            assert recipient.received == expected
+        assert f'played {sum(map(len, expected.values()))} messages in {2 * N_FRAMES} frames' \
+            in proc.stderr
+    finally:
+        recipient.close()
+
+
+def test_lockstep_without_acknowledgement_names_the_frame(bag, rclpy_context):
+    from nav_msgs.msg import Odometry
+    silent = SpinningNode('silent_graph')  # publishes /odom but never acknowledges
+    silent.node.create_publisher(Odometry, '/odom', 10)
+    silent.node.create_subscription(Image, '/cam_front/image_raw', lambda m: None, 10)
+    try:
+        proc = run_cli('play', bag, '--lockstep', '--ack-timeout', '1',
+                       '--topics', '/cam_front/image_raw', timeout=60)
+    finally:
+        silent.close()
+    assert proc.returncode == 2
+    assert 'Traceback' not in proc.stderr
+    assert re.search(r'frame 0 \(stamp 1700000000\.000000000 s, /cam_front/image_raw\) was not '
+                     r'acknowledged on /odom within 1 s', proc.stderr), proc.stderr
+
+
+def test_rate_mode_timing_and_remap(bag, rclpy_context):
+    recipient = Recipient(['/talk', '/chatter'])
+    try:
+        proc = run_cli('play', bag, '--rate', '2', '--remap', '/chatter:=/talk',
+                       '--topics', '/chatter', timeout=60)
+        assert proc.returncode == 0, proc.stderr
+        time.sleep(0.3)
+        with recipient.lock:
+            assert recipient.received['/talk'] == [f'msg {k}' for k in range(N_FRAMES)]
+            assert recipient.received['/chatter'] == []
+    finally:
+        recipient.close()
+    # chatter spans 1.0 s of bag time: 0.5 s at rate 2 (loose bound: not a benchmark)
+    wall = float(re.search(r'in ([0-9.]+) s', proc.stderr).group(1))
+    assert 0.45 <= wall <= 1.5, proc.stderr
+
+
+def test_parse_remaps_rejects_malformed_rules():
+    assert parse_remaps(['/a:=/b']) == {'/a': '/b'}
+    with pytest.raises(UserError):
+        parse_remaps(['/a=/b'])
+
+
+@pytest.mark.parametrize('case', ['missing bag', 'corrupt bag', 'missing topic'])
+def test_bad_input_is_one_line_error(case, bag, tmp_path):
+    if case == 'missing bag':
+        args, expect = [tmp_path / 'nope'], 'bag not found'
+    elif case == 'corrupt bag':
+        corrupt = tmp_path / 'corrupt.mcap'
+        corrupt.write_bytes(b'\x89MCAP0\r\n' + b'garbage' * 100)
+        args, expect = [corrupt], 'truncated or corrupt'
+    else:
+        args, expect = [bag, '--topics', '/nope'], 'has no topic /nope'
+    proc = run_cli('play', *args, timeout=60)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and expect in lines[0] and lines[0].startswith('ego-motion: error:'), \
+        proc.stderr
