@@ -1,0 +1,33 @@
+"""Build a rig from a bag when no rig file is given: extrinsics from /tf_static
+(base_link -> <cam>_optical) and camera names from the `/<cam>/image_raw` topics."""
+import numpy as np
+
+from multicam_ego_motion.errors import UserError
+from multicam_ego_motion.rig import CameraMount, Rig, rotation_from_quaternion
+
+
+def rig_from_bag(reader, base_frame: str = 'base_link') -> Rig:
+    if '/tf_static' not in reader.topics:
+        raise UserError(f'bag {reader.path} has no /tf_static and no rig file was given: '
+                        'cannot know where the cameras are (pass --rig RIG.yaml)')
+    transforms = {}
+    for _, msg, _ in reader.decoded(['/tf_static']):
+        for t in msg.transforms:
+            transforms[t.child_frame_id] = t
+    cams = []
+    for topic in sorted(reader.topics):
+        if not topic.endswith('/image_raw'):
+            continue
+        name = topic[1:-len('/image_raw')].strip('/')
+        frame = f'{name}_optical'
+        t = transforms.get(frame)
+        if t is None or t.header.frame_id != base_frame:
+            raise UserError(f'bag {reader.path}: /tf_static has no {base_frame} -> {frame} '
+                            f'for camera topic {topic}')
+        tr, rq = t.transform.translation, t.transform.rotation
+        cams.append(CameraMount(name, topic, f'/{name}/camera_info', frame,
+                                np.array([tr.x, tr.y, tr.z]),
+                                rotation_from_quaternion([rq.x, rq.y, rq.z, rq.w], f'/tf_static {frame}')))
+    if not cams:
+        raise UserError(f'bag {reader.path} has no */image_raw topic')
+    return Rig(cameras=cams, base_frame=base_frame)

@@ -1,0 +1,142 @@
+"""`ego-motion replay BAG --out DIR`: start the whole graph, play the bag through it, record
+what it publishes, and score the odometry against the bag's ground truth.
+
+Writes DIR/output (rosbag2 MCAP: /odom, /tf, quarter and camera estimates, /diagnostics),
+DIR/odometry.tum, and when the bag has ground truth DIR/report.md with plots.
+"""
+import os
+import threading
+import time
+from pathlib import Path
+
+from multicam_ego_motion.errors import UserError
+
+DEFAULT_PARAMS = Path(__file__).resolve().parent.parent / 'config' / 'params.yaml'
+
+
+def configure_parser(p):
+    p.add_argument('bag', help='rosbag2 MCAP bag (folder) to replay')
+    p.add_argument('--out', required=True, help='output folder')
+    p.add_argument('--rig', help='rig YAML (default: BAG/rig.yaml, else built from /tf_static)')
+    p.add_argument('--params', help=f'ROS params file (default: {DEFAULT_PARAMS.name} of the package)')
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument('--lockstep', action='store_true', default=True,
+                      help='next frame only when the graph has published /odom for the last (default)')
+    mode.add_argument('--rate', type=float, help='real-time factor, like ros2 bag play --rate')
+    p.add_argument('--workers', type=int, default=os.cpu_count(), help='worker processes (M)')
+    p.add_argument('--ground-truth-topic', default='/ground_truth/odom')
+    p.add_argument('--ack-timeout', type=float, default=120.0, help='lockstep: longest wait per frame [s]')
+    p.add_argument('--no-wheel', action='store_true', help='do not fuse /wheel/odom')
+
+
+def resolve_rig(bag_reader, rig_arg):
+    from multicam_ego_motion.bag.rig_from_tf import rig_from_bag
+    from multicam_ego_motion.rig import load_rig
+    if rig_arg:
+        return load_rig(rig_arg), Path(rig_arg)
+    beside = Path(bag_reader.path) / 'rig.yaml'
+    if beside.exists():
+        return load_rig(beside), beside
+    return rig_from_bag(bag_reader), None
+
+
+def graph_overrides(lockstep: bool, use_wheel: bool):
+    # Lockstep replay waits for everything (deterministic); rate mode must keep going.
+    wait = 60.0 if lockstep else 0.3
+    return {'quarter': {'image_qos': 'reliable' if lockstep else 'sensor_data',
+                        'feedback_timeout_s': wait},
+            'camera_arbiter': {'sync_timeout_s': 5.0 if lockstep else 0.2},
+            'general_arbiter': {'sync_timeout_s': 5.0 if lockstep else 0.2,
+                                'use_wheel_odometry': use_wheel}}
+
+
+def recorded_topics(rig):
+    topics = ['/odom', '/tf', '/ego_motion/fused_pose', '/diagnostics']
+    for c in rig.cameras:
+        topics.append(f'/{c.name}/pose')
+        topics += [f'/{c.name}/q{q}/pose' for q in range(1, 5)]
+    return topics
+
+
+def wait_for_graph(node, rig, bag_reader, launcher, timeout_s=60.0):
+    """Every quarter node subscribed to its present camera, and the general arbiter up."""
+    deadline = time.monotonic() + timeout_s
+    present = [c for c in rig.cameras if c.image_topic in bag_reader.topics]
+    while time.monotonic() < deadline:
+        launcher.check_alive()
+        ok = all(node.count_subscribers(c.image_topic) >= 4 for c in present)
+        ok = ok and node.count_publishers('/odom') >= 1
+        if ok:
+            return
+        time.sleep(0.2)
+    raise UserError(f'the graph did not come up within {timeout_s:.0f} s (see {launcher.log_dir})')
+
+
+def run(args) -> int:
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    from multicam_ego_motion import ros_domain
+    from multicam_ego_motion.bag.player import BagPlayer, PlayOptions
+    from multicam_ego_motion.bag.recorder import BagRecorder
+    from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
+    from multicam_ego_motion.coordinator.launcher import GraphLauncher
+    from multicam_ego_motion.replay_summary import summarize
+
+    ros_domain.isolate()
+    out = Path(args.out)
+    if (out / 'output').exists():
+        raise UserError(f'output folder {out} already holds a replay (output/ exists)')
+    reader = Rosbag2Reader(args.bag)
+    rig, rig_file = resolve_rig(reader, args.rig)
+    missing = [c.name for c in rig.cameras if c.image_topic not in reader.topics]
+    if len(missing) == len(rig.cameras):
+        raise UserError(f'bag {args.bag} has none of the rig\'s image topics')
+    out.mkdir(parents=True, exist_ok=True)
+    if rig_file is None:
+        rig_file = out / 'rig.yaml'
+        rig.save(rig_file)
+    params = Path(args.params) if args.params else DEFAULT_PARAMS
+    if not params.exists():
+        raise UserError(f'params file not found: {params}')
+    lockstep = args.rate is None
+    print(f'replay: {args.bag} ({", ".join(rig.names)}; '
+          f'{"lockstep" if lockstep else f"rate {args.rate}"}; {args.workers} workers; '
+          f'ROS_DOMAIN_ID={os.environ["ROS_DOMAIN_ID"]})', flush=True)
+    if missing:
+        print(f'replay: cameras without topics in the bag (the graph runs on the others): '
+              f'{", ".join(missing)}', flush=True)
+
+    launcher = GraphLauncher(rig, rig_file.resolve(), params.resolve(), workers=args.workers,
+                             overrides=graph_overrides(lockstep, not args.no_wheel),
+                             log_dir=out / 'logs')
+    rclpy.init()
+    node = rclpy.create_node('ego_motion_replay')
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    recorder = BagRecorder(out / 'output', topics=recorded_topics(rig))
+    t_start = time.monotonic()
+    result = None
+    try:
+        launcher.start()
+        spinner.start()
+        recorder.attach(node)
+        wait_for_graph(node, rig, reader, launcher)
+        recorder.wait_for_topics(10.0)
+        player = BagPlayer(args.bag, PlayOptions(
+            lockstep=lockstep, rate=args.rate or 1.0, ack_topic='/odom',
+            ack_timeout_s=args.ack_timeout, discovery_s=0.5, progress=None))
+        t_play = time.monotonic()
+        result = player.play(node)
+        wall = time.monotonic() - t_play
+        time.sleep(0.5 if lockstep else 1.0)  # let the last estimates reach the recorder
+        launcher.check_alive()
+    finally:
+        counts = recorder.close()
+        launcher.stop()
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return summarize(args.bag, reader, out, counts, result, wall, time.monotonic() - t_start,
+                     args.ground_truth_topic)
