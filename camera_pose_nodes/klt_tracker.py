@@ -52,8 +52,7 @@ class KLTTracker:
         self.ids = np.zeros(0, dtype=np.int64)
         self.pts = np.zeros((0, 2), dtype=np.float32)     # full-image pixels
         self.history: Dict[int, List[Tuple[int, float, float]]] = {}
-        self.prev_crop = None
-        self._prev_pyr = None
+        self.prev_crop = None      # previous frame's crop: what the next frame is tracked from
         self._cur_crop = None
 
     def get_state(self) -> dict:
@@ -67,8 +66,6 @@ class KLTTracker:
         self.pts = np.asarray(s['pts'], dtype=np.float32).copy()
         self.history = {int(k): list(v) for k, v in s['history'].items()}
         self.prev_crop = None if s['prev_crop'] is None else np.array(s['prev_crop'], np.uint8)
-        # The pyramid is a pure function of the crop: rebuilding it gives identical tracking.
-        self._prev_pyr = None if self.prev_crop is None else self._pyramid(self.prev_crop)
         self._cur_crop = self.prev_crop
 
     def close(self):
@@ -77,12 +74,6 @@ class KLTTracker:
             self._pool = None
 
     # ----- helpers -----------------------------------------------------------------------
-    def _pyramid(self, crop):
-        w = self.cfg.window
-        _, pyr = cv2.buildOpticalFlowPyramid(crop, (w, w), self.cfg.pyramid_levels,
-                                             withDerivatives=True)
-        return pyr
-
     def _map(self, fn, items):
         if self.cfg.parallel_chunks and len(items) > 1:
             if self._pool is None:
@@ -98,19 +89,21 @@ class KLTTracker:
     # ----- track -------------------------------------------------------------------------
     def track(self, stamp_ns: int, crop: np.ndarray) -> int:
         """Track existing features from the previous crop into `crop`; returns tracks kept."""
-        pyr = self._pyramid(crop)
-        if self._prev_pyr is not None and len(self.ids):
+        # OpenCV 5's Python binding no longer accepts prebuilt pyramids here, so each call
+        # builds its own; the pyramid is a pure function of the image, hence chunking and
+        # state hand-over still give identical results.
+        if self.prev_crop is not None and len(self.ids):
             off = self.region.offset
             p0 = (self.pts - off).reshape(-1, 1, 2).astype(np.float32)
             w = self.cfg.window
             crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
-            prev_pyr, lv = self._prev_pyr, self.cfg.pyramid_levels
+            prev, lv = self.prev_crop, self.cfg.pyramid_levels
 
             def lk(chunk):
                 a = p0[chunk]
-                b, st1, _ = cv2.calcOpticalFlowPyrLK(prev_pyr, pyr, a, None, winSize=(w, w),
+                b, st1, _ = cv2.calcOpticalFlowPyrLK(prev, crop, a, None, winSize=(w, w),
                                                      maxLevel=lv, criteria=crit)
-                back, st2, _ = cv2.calcOpticalFlowPyrLK(pyr, prev_pyr, b, None, winSize=(w, w),
+                back, st2, _ = cv2.calcOpticalFlowPyrLK(crop, prev, b, None, winSize=(w, w),
                                                         maxLevel=lv, criteria=crit)
                 fb = np.linalg.norm((back - a).reshape(-1, 2), axis=1)
                 ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < self.cfg.fb_threshold_px)
@@ -129,11 +122,8 @@ class KLTTracker:
                 h.append((stamp_ns, u, v))
                 if len(h) > self.cfg.max_history:
                     del h[1]                       # keep the oldest view: it has the parallax
-        elif self._prev_pyr is None:
-            self.ids = self.ids[:0]
-            self.pts = self.pts[:0]
-            self.history.clear()
-        self._prev_pyr, self.prev_crop, self._cur_crop = pyr, crop.copy(), crop
+        crop = np.ascontiguousarray(crop)
+        self.prev_crop = self._cur_crop = crop.copy()
         return len(self.ids)
 
     # ----- extract -----------------------------------------------------------------------
