@@ -10,6 +10,8 @@ import cv2
 
 from multicam_ego_motion.errors import UserError
 
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
+
 # ROS distortion_model names -> number of coefficients OpenCV takes.
 _MODELS = {'plumb_bob': (4, 5), 'rational_polynomial': (8, 14), 'equidistant': (4, 4),
            'none': (0, 0), '': (0, 0)}
@@ -73,7 +75,10 @@ class CameraIntrinsics:
                                     (px[:, 0, 1] - K[1, 2]) / K[1, 1]))
         if self.distortion_model == 'equidistant':
             return cv2.fisheye.undistortPoints(px, self.K, self.D).reshape(-1, 2)
-        return cv2.undistortPoints(px, self.K, self.D).reshape(-1, 2)
+        # The default 5 iterations leave ~0.03 px at strongly distorted corners; iterate to
+        # convergence so distortion never becomes a measurement bias.
+        return cv2.undistortPoints(px, self.K, self.D, None, None, None, _UNDISTORT_CRITERIA
+                                   ).reshape(-1, 2)
 
     def project(self, normalized: np.ndarray) -> np.ndarray:
         """Nx2 normalized coordinates -> Nx2 pixels (distortion applied)."""
