@@ -38,8 +38,10 @@ def bearings_odom(R_oc: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    c = np.clip(np.sum(a * b, axis=-1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1)),
-                -1.0, 1.0)
+    n = np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1)
+    # a zero-length ray (degenerate triangulation at a camera centre) counts as no parallax
+    c = np.where(n > 1e-300, np.sum(a * b, axis=-1) / np.maximum(n, 1e-300), 1.0)
+    c = np.clip(c, -1.0, 1.0)
     return np.degrees(np.arccos(c))
 
 
