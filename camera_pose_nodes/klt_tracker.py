@@ -1,0 +1,201 @@
+"""Extract and track: Shi-Tomasi corners + pyramidal Lucas-Kanade inside one quarter.
+
+Works on the quarter's crop (owned rectangle + margin); points are stored in full-image
+pixels. The paper's third level of parallelism (Fig. 3, NP = ceil(NF / MinF)) is here:
+tracking is split into chunks of about `min_features` points and extraction into grid
+cells, run on a thread pool (OpenCV releases the GIL). Both are per-point / per-cell
+independent computations concatenated in a fixed order, so chunked and sequential runs
+give identical results.
+"""
+import math
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Dict, List, Tuple
+
+import numpy as np
+import cv2
+
+from camera_pose_nodes.quarter_region import QuarterRegion
+
+
+@dataclass
+class KLTConfig:
+    min_features: int = 40        # extract only when fewer tracks than this
+    max_features: int = 80        # extraction tops the quarter up to this
+    window: int = 21              # LK window (px, odd)
+    pyramid_levels: int = 3       # LK pyramid levels above the base image
+    fb_threshold_px: float = 0.5  # forward-backward disagreement that rejects a track
+    quality_level: float = 0.01   # Shi-Tomasi quality relative to the cell's best corner
+    min_distance_px: float = 8.0  # minimum spacing between features
+    block_size: int = 5           # Shi-Tomasi gradient averaging block
+    grid_rows: int = 2            # extraction cells per quarter (spreads features)
+    grid_cols: int = 2
+    max_history: int = 60         # observations kept per track (the oldest is always kept)
+    parallel_chunks: bool = False # run chunks/cells on a thread pool
+
+
+def margin_for(cfg: KLTConfig) -> int:
+    """Crop margin so the LK window sees across the owned border at every pyramid level."""
+    return cfg.window // 2 + 2 * cfg.pyramid_levels + 2
+
+
+class KLTTracker:
+    def __init__(self, region: QuarterRegion, cfg: KLTConfig):
+        self.region = region
+        self.cfg = cfg
+        self._pool = None
+        self.reset()
+
+    # ----- state -------------------------------------------------------------------------
+    def reset(self):
+        self.next_id = 0
+        self.ids = np.zeros(0, dtype=np.int64)
+        self.pts = np.zeros((0, 2), dtype=np.float32)     # full-image pixels
+        self.history: Dict[int, List[Tuple[int, float, float]]] = {}
+        self.prev_crop = None      # previous frame's crop: what the next frame is tracked from
+        self._cur_crop = None
+
+    def get_state(self) -> dict:
+        return {'next_id': self.next_id, 'ids': self.ids.copy(), 'pts': self.pts.copy(),
+                'history': {k: list(v) for k, v in self.history.items()},
+                'prev_crop': None if self.prev_crop is None else self.prev_crop.copy()}
+
+    def set_state(self, s: dict):
+        self.next_id = int(s['next_id'])
+        self.ids = np.asarray(s['ids'], dtype=np.int64).copy()
+        self.pts = np.asarray(s['pts'], dtype=np.float32).copy()
+        self.history = {int(k): list(v) for k, v in s['history'].items()}
+        self.prev_crop = None if s['prev_crop'] is None else np.array(s['prev_crop'], np.uint8)
+        self._cur_crop = self.prev_crop
+
+    def close(self):
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    # ----- helpers -----------------------------------------------------------------------
+    def _map(self, fn, items):
+        if self.cfg.parallel_chunks and len(items) > 1:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(max_workers=max(2, len(items)),
+                                                thread_name_prefix='klt')
+            return list(self._pool.map(fn, items))
+        return [fn(it) for it in items]
+
+    def n_chunks(self, n_points: int) -> int:
+        """NP = ceil(NF / MinF), the paper's split of a quarter's features."""
+        return max(1, math.ceil(n_points / max(1, self.cfg.min_features)))
+
+    # ----- track -------------------------------------------------------------------------
+    def track(self, stamp_ns: int, crop: np.ndarray) -> int:
+        """Track existing features from the previous crop into `crop`; returns tracks kept."""
+        # OpenCV 5's Python binding no longer accepts prebuilt pyramids here, so each call
+        # builds its own; the pyramid is a pure function of the image, hence chunking and
+        # state hand-over still give identical results.
+        if self.prev_crop is not None and len(self.ids):
+            off = self.region.offset
+            p0 = (self.pts - off).reshape(-1, 1, 2).astype(np.float32)
+            w = self.cfg.window
+            crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+            prev, lv = self.prev_crop, self.cfg.pyramid_levels
+
+            def lk(chunk):
+                a = p0[chunk]
+                b, st1, _ = cv2.calcOpticalFlowPyrLK(prev, crop, a, None, winSize=(w, w),
+                                                     maxLevel=lv, criteria=crit)
+                back, st2, _ = cv2.calcOpticalFlowPyrLK(crop, prev, b, None, winSize=(w, w),
+                                                        maxLevel=lv, criteria=crit)
+                fb = np.linalg.norm((back - a).reshape(-1, 2), axis=1)
+                ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < self.cfg.fb_threshold_px)
+                return b.reshape(-1, 2), ok
+
+            chunks = np.array_split(np.arange(len(p0)), self.n_chunks(len(p0)))
+            res = self._map(lk, chunks)
+            new = np.concatenate([r[0] for r in res]) + off
+            ok = np.concatenate([r[1] for r in res]) & np.all(np.isfinite(new), axis=1)
+            ok &= self.region.owns(new)           # left the quarter: the neighbour takes over
+            for i in self.ids[~ok]:
+                del self.history[int(i)]
+            self.ids, self.pts = self.ids[ok], new[ok].astype(np.float32)
+            for i, (u, v) in zip(self.ids.tolist(), self.pts.tolist()):
+                h = self.history[i]
+                h.append((stamp_ns, u, v))
+                if len(h) > self.cfg.max_history:
+                    del h[1]                       # keep the oldest view: it has the parallax
+        crop = np.ascontiguousarray(crop)
+        self.prev_crop = self._cur_crop = crop.copy()
+        return len(self.ids)
+
+    # ----- extract -----------------------------------------------------------------------
+    def needs_features(self) -> bool:
+        return len(self.ids) < self.cfg.min_features
+
+    def extract(self, stamp_ns: int) -> int:
+        """Top the quarter up with Shi-Tomasi corners, one grid cell at a time, away from
+        existing tracks. Returns the number of new features."""
+        crop = self._cur_crop
+        if crop is None:
+            return 0
+        cfg, reg = self.cfg, self.region
+        ox, oy = reg.cx0, reg.cy0
+        n_cells = cfg.grid_rows * cfg.grid_cols
+        cap = math.ceil(cfg.max_features / n_cells)
+        xs = np.linspace(reg.x0, reg.x1, cfg.grid_cols + 1).round().astype(int)
+        ys = np.linspace(reg.y0, reg.y1, cfg.grid_rows + 1).round().astype(int)
+        half = int(math.ceil(cfg.min_distance_px / 2))
+        pad = cfg.block_size
+        existing = self.pts
+
+        cells = []
+        for r in range(cfg.grid_rows):
+            for c in range(cfg.grid_cols):
+                # Interior cell borders are shrunk by half the min distance so that corners
+                # of neighbouring cells keep the spacing a single call would enforce.
+                x0 = xs[c] + (half if c > 0 else 0)
+                x1 = xs[c + 1] - (half if c < cfg.grid_cols - 1 else 0)
+                y0 = ys[r] + (half if r > 0 else 0)
+                y1 = ys[r + 1] - (half if r < cfg.grid_rows - 1 else 0)
+                inside = ((existing[:, 0] >= xs[c]) & (existing[:, 0] < xs[c + 1])
+                          & (existing[:, 1] >= ys[r]) & (existing[:, 1] < ys[r + 1]))
+                want = cap - int(inside.sum())
+                if want > 0 and x1 - x0 > 2 and y1 - y0 > 2:
+                    cells.append((x0, y0, x1, y1, want))
+
+        def corners(cell):
+            x0, y0, x1, y1, want = cell
+            # Read a padded window so the gradient block sees real pixels at the cell edge.
+            wx0, wy0 = max(reg.cx0, x0 - pad), max(reg.cy0, y0 - pad)
+            wx1, wy1 = min(reg.cx1, x1 + pad), min(reg.cy1, y1 + pad)
+            sub = crop[wy0 - oy:wy1 - oy, wx0 - ox:wx1 - ox]
+            mask = np.zeros(sub.shape, np.uint8)
+            mask[y0 - wy0:y1 - wy0, x0 - wx0:x1 - wx0] = 255
+            for u, v in existing:
+                cv2.circle(mask, (int(round(u - wx0)), int(round(v - wy0))),
+                           int(cfg.min_distance_px), 0, -1)
+            p = cv2.goodFeaturesToTrack(sub, maxCorners=want, qualityLevel=cfg.quality_level,
+                                        minDistance=cfg.min_distance_px, mask=mask,
+                                        blockSize=cfg.block_size)
+            if p is None:
+                return np.zeros((0, 2), np.float32)
+            return p.reshape(-1, 2) + np.array([wx0, wy0], np.float32)
+
+        found = self._map(corners, cells)
+        new = np.concatenate(found).astype(np.float32) if found else np.zeros((0, 2), np.float32)
+        if len(new):
+            new_ids = np.arange(self.next_id, self.next_id + len(new), dtype=np.int64)
+            self.next_id += len(new)
+            for i, (u, v) in zip(new_ids.tolist(), new.tolist()):
+                self.history[i] = [(stamp_ns, u, v)]
+            self.ids = np.concatenate([self.ids, new_ids])
+            self.pts = np.concatenate([self.pts, new])
+        return len(new)
+
+    def drop(self, ids):
+        """Forget tracks (e.g. whose landmark proved inconsistent)."""
+        ids = np.asarray(list(ids), dtype=np.int64)
+        if not len(ids):
+            return
+        keep = ~np.isin(self.ids, ids)
+        for i in self.ids[~keep]:
+            self.history.pop(int(i), None)
+        self.ids, self.pts = self.ids[keep], self.pts[keep]

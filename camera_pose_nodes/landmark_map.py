@@ -1,0 +1,140 @@
+"""Structure: metric 3D landmarks (odom) per track id, triangulated from fused poses.
+
+Scale comes only from the poses handed in (the general arbiter's fused body poses and the
+rig extrinsics); nothing here chooses a scale. A track becomes a landmark once the rays of
+its oldest and newest views (with a known fused pose) subtend `parallax_deg`; it is
+re-triangulated with more views when its parallax has grown by `refine_factor`, and dropped
+when it reprojects badly or falls behind the camera.
+"""
+from typing import Dict
+
+import numpy as np
+
+
+def triangulate_views(R_oc: np.ndarray, c_o: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Linear multi-view DLT, vectorised over points.
+
+    R_oc (N, V, 3, 3) camera->odom rotations, c_o (N, V, 3) camera centres in odom,
+    xy (N, V, 2) normalized image coordinates. Returns X (N, 3) in odom. The coordinates are
+    taken relative to each point's first camera centre for conditioning."""
+    ref = c_o[:, :1, :]
+    Rt = np.swapaxes(R_oc, -1, -2)                                   # odom -> camera
+    t = -np.einsum('nvij,nvj->nvi', Rt, c_o - ref)                   # X_c = Rt X + t
+    P = np.concatenate([Rt, t[..., None]], axis=-1)                  # (N, V, 3, 4)
+    rows_u = xy[..., 0, None] * P[..., 2, :] - P[..., 0, :]
+    rows_v = xy[..., 1, None] * P[..., 2, :] - P[..., 1, :]
+    A = np.concatenate([rows_u, rows_v], axis=1)                     # (N, 2V, 4)
+    _, _, vt = np.linalg.svd(A)
+    Xh = vt[:, -1, :]
+    w = np.where(np.abs(Xh[:, 3]) < 1e-12, 1e-12, Xh[:, 3])
+    return Xh[:, :3] / w[:, None] + ref[:, 0, :]
+
+
+def bearings_odom(R_oc: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Unit rays in odom for normalized coordinates xy (..., 2) seen with rotations R_oc."""
+    f = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)
+    r = np.einsum('...ij,...j->...i', R_oc, f)
+    return r / np.linalg.norm(r, axis=-1, keepdims=True)
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1)
+    # a zero-length ray (degenerate triangulation at a camera centre) counts as no parallax
+    c = np.where(n > 1e-300, np.sum(a * b, axis=-1) / np.maximum(n, 1e-300), 1.0)
+    c = np.clip(c, -1.0, 1.0)
+    return np.degrees(np.arccos(c))
+
+
+class LandmarkMap:
+    def __init__(self, parallax_deg=2.0, max_reproj_px=2.0, min_depth=0.1, max_depth=200.0,
+                 refine_factor=2.0, focal_px=500.0):
+        self.parallax_deg = float(parallax_deg)
+        self.max_reproj_px = float(max_reproj_px)
+        self.min_depth = float(min_depth)
+        self.max_depth = float(max_depth)
+        self.refine_factor = float(refine_factor)
+        self.focal_px = float(focal_px)      # converts normalized errors to pixels
+        self.reset()
+
+    def reset(self):
+        self.points: Dict[int, np.ndarray] = {}
+        self.parallax: Dict[int, float] = {}
+
+    def get_state(self) -> dict:
+        return {'points': {k: v.copy() for k, v in self.points.items()},
+                'parallax': dict(self.parallax)}
+
+    def set_state(self, s: dict):
+        self.points = {int(k): np.array(v, float) for k, v in s['points'].items()}
+        self.parallax = {int(k): float(v) for k, v in s['parallax'].items()}
+
+    def __len__(self):
+        return len(self.points)
+
+    def lookup(self, ids: np.ndarray):
+        """(mask of ids with a landmark, their points M x 3)."""
+        has = np.array([int(i) in self.points for i in ids], bool)
+        X = np.array([self.points[int(i)] for i in np.asarray(ids)[has]]).reshape(-1, 3)
+        return has, X
+
+    def want(self, track_id: int, parallax_deg: float) -> bool:
+        """Is a (re-)triangulation of this track worth doing at this parallax?"""
+        if parallax_deg < self.parallax_deg:
+            return False
+        old = self.parallax.get(int(track_id))
+        return old is None or parallax_deg >= self.refine_factor * old
+
+    def triangulate(self, ids: np.ndarray, R_oc: np.ndarray, c_o: np.ndarray,
+                    xy: np.ndarray) -> np.ndarray:
+        """Triangulate tracks `ids` from V views each (arrays as in triangulate_views, the
+        first and last view being the widest pair) and keep those passing the checks:
+        parallax at the point, positive depth in range, reprojection in every view.
+        Returns the mask of accepted ids."""
+        ids = np.asarray(ids, dtype=np.int64)
+        if len(ids) == 0:
+            return np.zeros(0, bool)
+        X = triangulate_views(R_oc, c_o, xy)
+        rel = X[:, None, :] - c_o                                    # (N, V, 3)
+        Xc = np.einsum('nvji,nvj->nvi', R_oc, rel)                   # R_oc^T (X - c)
+        depth = Xc[..., 2]
+        ok = np.all(np.isfinite(X), axis=1)
+        ok &= np.all(depth > self.min_depth, axis=1) & np.all(depth < self.max_depth, axis=1)
+        par = angle_deg(rel[:, 0], rel[:, -1])
+        ok &= par >= self.parallax_deg
+        zs = np.where(depth > 1e-9, depth, 1e-9)
+        err = np.linalg.norm(Xc[..., :2] / zs[..., None] - xy, axis=-1) * self.focal_px
+        ok &= np.all(err < self.max_reproj_px, axis=1)
+        for i, X_i, p in zip(ids[ok].tolist(), X[ok], par[ok].tolist()):
+            self.points[i] = X_i
+            self.parallax[i] = p
+        return ok
+
+    def check(self, ids: np.ndarray, R_oc: np.ndarray, c_o: np.ndarray,
+              xy: np.ndarray) -> np.ndarray:
+        """Drop landmarks of `ids` that reproject worse than max_reproj_px or lie behind the
+        camera (R_oc 3x3, c_o 3: one camera pose; xy N x 2 observations). Returns the mask
+        of dropped ids."""
+        ids = np.asarray(ids, dtype=np.int64)
+        has, X = self.lookup(ids)
+        bad = np.zeros(len(ids), bool)
+        if not has.any():
+            return bad
+        Xc = (X - c_o) @ R_oc
+        depth = Xc[:, 2]
+        zs = np.where(depth > 1e-9, depth, 1e-9)
+        err = np.linalg.norm(Xc[:, :2] / zs[:, None] - xy[has], axis=1) * self.focal_px
+        bad_h = (depth <= self.min_depth) | (err > self.max_reproj_px) | ~np.isfinite(err)
+        bad[np.flatnonzero(has)[bad_h]] = True
+        for i in ids[bad].tolist():
+            self.forget(i)
+        return bad
+
+    def forget(self, track_id: int):
+        self.points.pop(int(track_id), None)
+        self.parallax.pop(int(track_id), None)
+
+    def keep_only(self, live_ids):
+        """Landmarks of tracks that no longer exist are of no use to a tracking-only map."""
+        live = set(int(i) for i in live_ids)
+        for i in [i for i in self.points if i not in live]:
+            self.forget(i)

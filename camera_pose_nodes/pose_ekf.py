@@ -1,0 +1,219 @@
+"""Pose: the per-quarter EKF on body pose and twist (filterpy), measured by reprojections.
+
+Error state x (12): p (body position, odom), dtheta (orientation error, odom frame, applied
+as R = exp([dtheta]x) R_nom about a nominal rotation kept outside the state), v (linear
+velocity, odom), w (angular velocity, body frame). dtheta is folded into R_nom after every
+predict/update ("re-centred"), so it is zero between steps and the pose covariance block
+P[:6, :6] is directly in the multicam_ego_motion.se3 convention.
+
+Measurement: normalized, undistorted image coordinates of tracked features whose landmark X
+(odom) is known, h = pi(R_cam^T (X - p_cam)) with T_odom_cam = T_odom_base T_base_cam. The
+number of measurements changes every frame, so H and R are built per update.
+"""
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+
+from multicam_ego_motion.se3 import make_T, R_to_rotvec, rotvec_to_R
+
+DIM = 12
+P_, TH, V_, W_ = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
+_MIN_EIG = 1e-12
+
+
+class PoseEKF:
+    def __init__(self, accel_sigma=2.0, alpha_sigma=2.0, init_pose_sigma=1.0e3,
+                 init_twist_sigma=10.0):
+        self.accel_sigma = float(accel_sigma)     # white acceleration, m/s^2 per sqrt(Hz)
+        self.alpha_sigma = float(alpha_sigma)     # white angular acceleration, rad/s^2
+        self.init_pose_sigma = float(init_pose_sigma)
+        self.init_twist_sigma = float(init_twist_sigma)
+        self.kf = ExtendedKalmanFilter(dim_x=DIM, dim_z=2)
+        self.reset()
+
+    # ----- state -------------------------------------------------------------------------
+    def reset(self, T_odom_base=None):
+        T = np.eye(4) if T_odom_base is None else np.asarray(T_odom_base, float)
+        self.kf.x = np.zeros((DIM, 1))
+        self.kf.x[P_, 0] = T[:3, 3]
+        self.R_nom = T[:3, :3].copy()
+        self.kf.P = np.diag([self.init_pose_sigma ** 2] * 6 + [self.init_twist_sigma ** 2] * 6)
+        self.stamp_ns = None
+
+    def get_state(self) -> dict:
+        return {'x': self.kf.x.copy(), 'P': self.kf.P.copy(), 'R_nom': self.R_nom.copy(),
+                'stamp_ns': self.stamp_ns}
+
+    def set_state(self, s: dict):
+        self.kf.x = np.array(s['x'], float).reshape(DIM, 1)
+        self.kf.P = np.array(s['P'], float)
+        self.R_nom = np.array(s['R_nom'], float)
+        self.stamp_ns = s['stamp_ns']
+
+    @property
+    def T_odom_base(self) -> np.ndarray:
+        return make_T(self.R_nom, self.kf.x[P_, 0])
+
+    @property
+    def pose_covariance(self) -> np.ndarray:
+        return self.kf.P[:6, :6].copy()
+
+    @property
+    def twist(self):
+        """(v in odom, w in base_link, 6x6 covariance of [v, w])."""
+        return self.kf.x[V_, 0].copy(), self.kf.x[W_, 0].copy(), self.kf.P[6:, 6:].copy()
+
+    def healthy(self) -> bool:
+        return bool(np.all(np.isfinite(self.kf.x)) and np.all(np.isfinite(self.kf.P)))
+
+    # ----- internals ---------------------------------------------------------------------
+    def _recentre(self):
+        dth = self.kf.x[TH, 0]
+        if np.any(dth != 0.0):
+            self.R_nom = rotvec_to_R(dth) @ self.R_nom
+            # Re-orthonormalise so that rounding never accumulates into a non-rotation.
+            u, _, vt = np.linalg.svd(self.R_nom)
+            self.R_nom = u @ vt
+            self.kf.x[TH, 0] = 0.0
+
+    def _condition(self):
+        """Keep P symmetric positive definite (rounding in long runs can break both)."""
+        P = 0.5 * (self.kf.P + self.kf.P.T)
+        w, U = np.linalg.eigh(P)
+        if w.min() < _MIN_EIG:
+            P = (U * np.maximum(w, _MIN_EIG)) @ U.T
+            P = 0.5 * (P + P.T)
+        self.kf.P = P
+
+    # ----- predict -----------------------------------------------------------------------
+    def predict(self, stamp_ns: int):
+        """Constant-velocity prediction to `stamp_ns` (no-op for the first or a repeated stamp)."""
+        if self.stamp_ns is None:
+            self.stamp_ns = int(stamp_ns)
+            return
+        dt = (int(stamp_ns) - self.stamp_ns) * 1e-9
+        if dt <= 0.0:
+            return   # out-of-order/duplicate stamp: never run the model backwards
+        self.stamp_ns = int(stamp_ns)
+        F = np.eye(DIM)
+        F[P_, V_] = np.eye(3) * dt
+        # dtheta (odom) integrates the body rate rotated into odom: R_nom w dt. Since
+        # exp([R w]x) R = R exp([w]x), F x followed by re-centring is the exact rotation update.
+        F[TH, W_] = self.R_nom * dt
+        qa, qw = self.accel_sigma ** 2, self.alpha_sigma ** 2
+        Q = np.zeros((DIM, DIM))
+        Q[P_, P_] = np.eye(3) * qa * dt ** 3 / 3
+        Q[P_, V_] = Q[V_, P_] = np.eye(3) * qa * dt ** 2 / 2
+        Q[V_, V_] = np.eye(3) * qa * dt
+        Q[TH, TH] = np.eye(3) * qw * dt ** 3 / 3
+        Q[TH, W_] = self.R_nom * qw * dt ** 2 / 2
+        Q[W_, TH] = Q[TH, W_].T
+        Q[W_, W_] = np.eye(3) * qw * dt
+        self.kf.F, self.kf.Q = F, Q
+        self.kf.predict()
+        self._recentre()
+        self._condition()
+
+    # ----- measurement model -------------------------------------------------------------
+    def project(self, X: np.ndarray, T_base_cam: np.ndarray):
+        """Predicted normalized coordinates (N x 2), camera-frame depth (N), and the
+        Jacobians (N x 2 x 12) of the landmarks X (N x 3, odom) at the current estimate."""
+        R_bc, t_bc = T_base_cam[:3, :3], T_base_cam[:3, 3]
+        p = self.kf.x[P_, 0]
+        A = (self.R_nom @ R_bc).T                       # odom -> camera rotation
+        d = X - p                                       # landmark relative to body, odom
+        Xc = d @ A.T - R_bc.T @ t_bc
+        z = Xc[:, 2]
+        zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
+        uv = Xc[:, :2] / zs[:, None]
+        n = len(X)
+        Jpi = np.zeros((n, 2, 3))
+        Jpi[:, 0, 0] = Jpi[:, 1, 1] = 1.0 / zs
+        Jpi[:, :, 2] = -uv / zs[:, None]
+        # Xc = A (I - [dtheta]x)(X - p) - ...: dXc/dp = -A, dXc/ddtheta = A [X - p]x
+        dth = np.einsum('ij,njk->nik', A, _skew_batch(d))
+        H = np.zeros((n, 2, DIM))
+        H[:, :, P_] = -Jpi @ A
+        H[:, :, TH] = Jpi @ dth
+        return uv, z, H
+
+    # ----- update ------------------------------------------------------------------------
+    def update(self, X: np.ndarray, z_obs: np.ndarray, sigma_uv, T_base_cam: np.ndarray,
+               gate_chi2: float = 9.21, min_depth: float = 0.05) -> np.ndarray:
+        """Fuse observed normalized coordinates z_obs (N x 2) of landmarks X (N x 3).
+        sigma_uv: (su, sv) measurement std in normalized units. Returns the inlier mask.
+        Each feature is gated on its own 2-dof Mahalanobis distance against the prior, so a
+        gross outlier cannot drag the others; the accepted ones are fused in one update."""
+        X = np.asarray(X, float).reshape(-1, 3)
+        z_obs = np.asarray(z_obs, float).reshape(-1, 2)
+        inl = np.zeros(len(X), bool)
+        if len(X) == 0:
+            return inl
+        uv, depth, H = self.project(X, T_base_cam)
+        r = z_obs - uv
+        Rm = np.diag(np.square(np.asarray(sigma_uv, float)))
+        S = H @ self.kf.P @ H.transpose(0, 2, 1) + Rm
+        det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
+        valid = (depth > min_depth) & np.all(np.isfinite(r), axis=1) & (det > 0)
+        det = np.where(valid, det, 1.0)
+        # 2x2 inverse in closed form, vectorised over features
+        d2 = (S[:, 1, 1] * r[:, 0] ** 2 - (S[:, 0, 1] + S[:, 1, 0]) * r[:, 0] * r[:, 1]
+              + S[:, 0, 0] * r[:, 1] ** 2) / det
+        inl = valid & (d2 < gate_chi2)
+        if not inl.any():
+            return inl
+        Hs = H[inl].reshape(-1, DIM)
+        zs = z_obs[inl].reshape(-1, 1)
+        hs = uv[inl].reshape(-1, 1)
+        Rs = np.kron(np.eye(int(inl.sum())), Rm)
+        x_before, P_before = self.kf.x.copy(), self.kf.P.copy()
+        self.kf.update(zs, HJacobian=lambda _x: Hs, Hx=lambda _x: hs, R=Rs)
+        if not self.healthy():
+            # A degenerate geometry produced NaN: keep the prediction rather than poison P.
+            self.kf.x, self.kf.P = x_before, P_before
+            return np.zeros(len(X), bool)
+        self._recentre()
+        self._condition()
+        return inl
+
+    # ----- realign to the fused estimate --------------------------------------------------
+    def set_pose(self, T_odom_base: np.ndarray, cov6: np.ndarray):
+        """Replace the pose by the arbiters' fused pose N(T, cov6).
+
+        The fused pose already contains this quarter's own measurement, so fusing it as an
+        independent measurement would count that twice and make the filter overconfident.
+        Instead the pose marginal is *replaced* and the twist is moved along with it through
+        the prior's pose-twist correlation (Gaussian conditioning on the new pose, a.k.a.
+        Jeffrey's rule): twist' = twist + G (pose_f - pose), G = P_tp P_pp^-1,
+        P_tt' = P_tt - G P_pt + G C G^T, P_tp' = G C. During initialisation this is also
+        what estimates the velocity from the sequence of fused poses."""
+        T_odom_base = np.asarray(T_odom_base, float)
+        C = 0.5 * (np.asarray(cov6, float) + np.asarray(cov6, float).T)
+        P = self.kf.P
+        delta = np.concatenate([T_odom_base[:3, 3] - self.kf.x[P_, 0],
+                                R_to_rotvec(T_odom_base[:3, :3] @ self.R_nom.T)])
+        Ppp, Ptp = P[:6, :6], P[6:, :6]
+        try:
+            G = np.linalg.solve(Ppp + np.eye(6) * _MIN_EIG, Ptp.T).T
+        except np.linalg.LinAlgError:
+            G = np.zeros((6, 6))
+        if not np.all(np.isfinite(G)):
+            G = np.zeros((6, 6))
+        Pn = np.empty_like(P)
+        Pn[:6, :6] = C
+        Pn[6:, :6] = G @ C
+        Pn[:6, 6:] = Pn[6:, :6].T
+        Pn[6:, 6:] = P[6:, 6:] - G @ Ptp.T + G @ C @ G.T
+        self.kf.x[6:, 0] = self.kf.x[6:, 0] + G @ delta
+        self.kf.x[P_, 0] = T_odom_base[:3, 3]
+        self.kf.x[TH, 0] = 0.0
+        self.R_nom = T_odom_base[:3, :3].copy()
+        self.kf.P = Pn
+        self._condition()
+
+
+def _skew_batch(v: np.ndarray) -> np.ndarray:
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2] = -v[:, 2], v[:, 1]
+    out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
+    out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
+    return out

@@ -1,0 +1,299 @@
+"""The quarter node's core (paper T_kl): acquire, extract, track, pose, structure.
+
+ROS-free: the node converts messages (image_conversion), builds the intrinsics
+(camera_model) and calls process_image() per frame and apply_fused_pose() when the general
+arbiter's fused pose of that frame comes back. get_state()/set_state() hand the quarter
+over to another process (the coordinator's rebalancing) with bit-identical continuation.
+"""
+import math
+import time
+from dataclasses import dataclass, fields, asdict
+from typing import Dict, Optional
+
+import numpy as np
+
+from camera_pose_nodes.camera_model import CameraIntrinsics
+from camera_pose_nodes.klt_tracker import KLTConfig, KLTTracker, margin_for
+from camera_pose_nodes.landmark_map import LandmarkMap, bearings_odom, angle_deg
+from camera_pose_nodes.pose_ekf import PoseEKF
+from camera_pose_nodes.pose_estimate import PoseEstimate, UNINFORMATIVE_VARIANCE, uninformative
+from camera_pose_nodes.quarter_region import QuarterRegion
+from multicam_ego_motion.errors import UserError
+from multicam_ego_motion.rig import CameraMount
+
+STATE_VERSION = 1
+STAGES = ('acquire', 'extract', 'track', 'pose', 'structure')
+_TRIANGULATION_VIEWS = 5     # views per DLT: oldest, newest and evenly spaced between
+
+# name -> (default, description, min, max). The node declares its ROS parameters from this.
+PARAMETERS = {
+    'min_features': (40, "extract new features when fewer are tracked (paper's Min)", 4, 1000),
+    'max_features': (80, 'extraction tops the quarter up to this many features', 8, 4000),
+    'klt_window': (21, 'Lucas-Kanade window size in pixels (odd)', 5, 63),
+    'pyramid_levels': (3, 'Lucas-Kanade pyramid levels above the full-resolution image', 0, 6),
+    'fb_threshold_px': (0.5, 'forward-backward tracking error that rejects a track (px)', 0.05, 10.0),
+    'quality_level': (0.01, 'Shi-Tomasi corner quality relative to the best in its cell', 1e-4, 0.5),
+    'min_distance_px': (8.0, 'minimum distance between features (px)', 1.0, 100.0),
+    'block_size': (5, 'Shi-Tomasi gradient averaging block (px)', 3, 15),
+    'grid_rows': (2, 'extraction cells per quarter, rows (spreads features)', 1, 8),
+    'grid_cols': (2, 'extraction cells per quarter, columns', 1, 8),
+    'parallel_chunks': (False, 'split extraction/tracking into ~min_features chunks on threads', None, None),
+    'max_history': (60, 'observations kept per track for triangulation (oldest always kept)', 2, 10000),
+    'pixel_sigma': (1.0, 'feature measurement noise (px, 1 sigma)', 0.05, 20.0),
+    'gate_chi2': (9.21, 'per-feature Mahalanobis gate (chi-square, 2 dof; 9.21 = 99 %)', 1.0, 100.0),
+    'accel_sigma': (2.0, 'process noise: white linear acceleration (m/s^2/sqrt(Hz))', 1e-4, 100.0),
+    'alpha_sigma': (2.0, 'process noise: white angular acceleration (rad/s^2/sqrt(Hz))', 1e-4, 100.0),
+    'min_inliers': (6, 'inliers needed to report tracking (else lost)', 3, 1000),
+    'parallax_deg': (2.0, 'ray angle a track needs before it is triangulated (deg)', 0.1, 45.0),
+    'refine_factor': (2.0, 're-triangulate a landmark when its parallax grew by this factor', 1.1, 100.0),
+    'max_reproj_px': (2.0, 'landmarks reprojecting worse than this are rejected/dropped (px)', 0.1, 50.0),
+    'min_depth': (0.1, 'nearest accepted landmark depth (m)', 0.001, 10.0),
+    'max_depth': (200.0, 'farthest accepted landmark depth (m)', 1.0, 1e5),
+}
+
+
+@dataclass
+class QuarterParams:
+    min_features: int = PARAMETERS['min_features'][0]
+    max_features: int = PARAMETERS['max_features'][0]
+    klt_window: int = PARAMETERS['klt_window'][0]
+    pyramid_levels: int = PARAMETERS['pyramid_levels'][0]
+    fb_threshold_px: float = PARAMETERS['fb_threshold_px'][0]
+    quality_level: float = PARAMETERS['quality_level'][0]
+    min_distance_px: float = PARAMETERS['min_distance_px'][0]
+    block_size: int = PARAMETERS['block_size'][0]
+    grid_rows: int = PARAMETERS['grid_rows'][0]
+    grid_cols: int = PARAMETERS['grid_cols'][0]
+    parallel_chunks: bool = PARAMETERS['parallel_chunks'][0]
+    max_history: int = PARAMETERS['max_history'][0]
+    pixel_sigma: float = PARAMETERS['pixel_sigma'][0]
+    gate_chi2: float = PARAMETERS['gate_chi2'][0]
+    accel_sigma: float = PARAMETERS['accel_sigma'][0]
+    alpha_sigma: float = PARAMETERS['alpha_sigma'][0]
+    min_inliers: int = PARAMETERS['min_inliers'][0]
+    parallax_deg: float = PARAMETERS['parallax_deg'][0]
+    refine_factor: float = PARAMETERS['refine_factor'][0]
+    max_reproj_px: float = PARAMETERS['max_reproj_px'][0]
+    min_depth: float = PARAMETERS['min_depth'][0]
+    max_depth: float = PARAMETERS['max_depth'][0]
+
+    def validate(self) -> 'QuarterParams':
+        for f in fields(self):
+            v = getattr(self, f.name)
+            _, _, lo, hi = PARAMETERS[f.name]
+            if lo is None:
+                continue
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) \
+                    or not lo <= v <= hi:
+                raise UserError(f'parameter {f.name} = {v!r} is outside [{lo}, {hi}]')
+        if self.max_features < self.min_features:
+            raise UserError(f'max_features ({self.max_features}) must be >= min_features '
+                            f'({self.min_features})')
+        if self.klt_window % 2 == 0:
+            raise UserError(f'klt_window must be odd, got {self.klt_window}')
+        return self
+
+    @classmethod
+    def from_dict(cls, d: dict) -> 'QuarterParams':
+        unknown = set(d) - set(PARAMETERS)
+        if unknown:
+            raise UserError(f'unknown quarter parameter(s): {", ".join(sorted(unknown))}')
+        return cls(**d).validate()
+
+
+class QuarterEstimator:
+    def __init__(self, camera: CameraMount, quarter: int, intrinsics: CameraIntrinsics,
+                 params: Optional[QuarterParams] = None, image_size=None):
+        self.camera = camera
+        self.quarter = int(quarter)
+        self.intrinsics = intrinsics
+        self.params = (params or QuarterParams()).validate()
+        w, h = image_size if image_size is not None else (intrinsics.width, intrinsics.height)
+        self.image_size = (int(w), int(h))
+        p = self.params
+        self.klt_cfg = KLTConfig(
+            min_features=p.min_features, max_features=p.max_features, window=p.klt_window,
+            pyramid_levels=p.pyramid_levels, fb_threshold_px=p.fb_threshold_px,
+            quality_level=p.quality_level, min_distance_px=p.min_distance_px,
+            block_size=p.block_size, grid_rows=p.grid_rows, grid_cols=p.grid_cols,
+            max_history=p.max_history, parallel_chunks=p.parallel_chunks)
+        self.region = QuarterRegion.of(self.quarter, *self.image_size, margin_for(self.klt_cfg))
+        self.source = f'{camera.name}/q{self.quarter}'
+        self.T_base_cam = camera.T_base_cam
+        self.tracker = KLTTracker(self.region, self.klt_cfg)
+        self.ekf = PoseEKF(p.accel_sigma, p.alpha_sigma)
+        self.landmarks = LandmarkMap(p.parallax_deg, p.max_reproj_px, p.min_depth, p.max_depth,
+                                     p.refine_factor, focal_px=0.5 * (intrinsics.fx + intrinsics.fy))
+        self.sigma_uv = (p.pixel_sigma / intrinsics.fx, p.pixel_sigma / intrinsics.fy)
+        self.reset()
+
+    def reset(self):
+        self.tracker.reset()
+        self.ekf.reset()
+        self.landmarks.reset()
+        self.fused_poses: Dict[int, np.ndarray] = {}
+        self.structure_ms = 0.0
+
+    def close(self):
+        self.tracker.close()
+
+    # ----- per frame ---------------------------------------------------------------------
+    def process_image(self, stamp_ns: int, gray: np.ndarray) -> PoseEstimate:
+        ms: Dict[str, float] = {}
+        t0 = time.perf_counter()
+        gray = np.asarray(gray)
+        if gray.dtype != np.uint8 or gray.ndim != 2:
+            raise UserError(f'{self.source}: expected a gray uint8 image, got {gray.dtype} '
+                            f'with shape {gray.shape}')
+        if (gray.shape[1], gray.shape[0]) != self.image_size:
+            raise UserError(f'{self.source}: image is {gray.shape[1]}x{gray.shape[0]}, '
+                            f'expected {self.image_size[0]}x{self.image_size[1]} (CameraInfo)')
+        crop = np.ascontiguousarray(self.region.crop(gray))
+        t1 = time.perf_counter()
+        ms['acquire'] = (t1 - t0) * 1e3
+
+        self.tracker.track(stamp_ns, crop)
+        t2 = time.perf_counter()
+        ms['track'] = (t2 - t1) * 1e3
+
+        if self.tracker.needs_features():
+            self.tracker.extract(stamp_ns)
+        t3 = time.perf_counter()
+        ms['extract'] = (t3 - t2) * 1e3
+
+        self.ekf.predict(stamp_ns)
+        has, X = self.landmarks.lookup(self.tracker.ids)
+        n_inliers = 0
+        if len(X):
+            xy = self.intrinsics.undistort_points(self.tracker.pts[has])
+            inl = self.ekf.update(X, xy, self.sigma_uv, self.T_base_cam, self.params.gate_chi2,
+                                  self.params.min_depth)
+            n_inliers = int(inl.sum())
+        if not self.ekf.healthy():
+            # Cannot happen by construction (guards in the EKF); if it does, restart the
+            # filter from the last fused pose rather than publish NaN.
+            last = self.fused_poses[max(self.fused_poses)] if self.fused_poses else None
+            self.ekf.reset(last)
+            self.ekf.predict(stamp_ns)
+        t4 = time.perf_counter()
+        ms['pose'] = (t4 - t3) * 1e3
+        ms['structure'] = self.structure_ms    # ran when the previous fused pose came back
+
+        if len(self.landmarks) == 0:
+            state = 'initializing'
+        elif n_inliers >= self.params.min_inliers:
+            state = 'tracking'
+        else:
+            state = 'lost'
+        kw = dict(n_features=len(self.tracker.ids), n_landmarks=int(has.sum()),
+                  n_inliers=n_inliers, stage_ms=ms)
+        if state != 'tracking':
+            return uninformative(stamp_ns, self.ekf.T_odom_base, self.source, state, **kw)
+        return PoseEstimate(stamp_ns, self.ekf.T_odom_base, self.ekf.pose_covariance,
+                            source=self.source, state=state, **kw)
+
+    def twist(self):
+        """(v in odom, w in base_link, 6x6 covariance of [v, w]) of the last estimate."""
+        return self.ekf.twist
+
+    # ----- feedback from the general arbiter -----------------------------------------------
+    def apply_fused_pose(self, stamp_ns: int, T_odom_base: np.ndarray, cov6: np.ndarray) -> float:
+        """Realign to the fused pose of frame `stamp_ns`, then triangulate and prune
+        landmarks with it. Returns the structure stage time (ms), also reported with the
+        next frame's estimate. An uninformative fused pose carries nothing and is ignored."""
+        t0 = time.perf_counter()
+        T = np.asarray(T_odom_base, float)
+        C = np.asarray(cov6, float)
+        if T.shape != (4, 4) or C.shape != (6, 6):
+            raise UserError(f'{self.source}: fused pose must be 4x4 and covariance 6x6')
+        if not (np.all(np.isfinite(T)) and np.all(np.isfinite(C))) \
+                or np.max(np.diag(C)) >= UNINFORMATIVE_VARIANCE:
+            return 0.0
+        stamp_ns = int(stamp_ns)
+        if self.ekf.stamp_ns is None:
+            self.ekf.reset(T)
+            self.ekf.stamp_ns = stamp_ns
+            self.ekf.set_pose(T, C)
+        elif stamp_ns == self.ekf.stamp_ns:
+            self.ekf.set_pose(T, C)
+        # (older stamps: a late message, still good for triangulation)
+        self.fused_poses[stamp_ns] = T.copy()
+        self._prune_landmarks(stamp_ns, T)
+        self._triangulate()
+        self._forget_unused_poses()
+        self.structure_ms = (time.perf_counter() - t0) * 1e3
+        return self.structure_ms
+
+    def _camera_pose(self, T_odom_base):
+        T = T_odom_base @ self.T_base_cam
+        return T[..., :3, :3], T[..., :3, 3]
+
+    def _prune_landmarks(self, stamp_ns, T):
+        tr = self.tracker
+        seen = np.array([tr.history[int(i)][-1][0] == stamp_ns for i in tr.ids], bool)
+        if not seen.any():
+            return
+        ids = tr.ids[seen]
+        px = np.array([tr.history[int(i)][-1][1:] for i in ids])
+        R_oc, c_o = self._camera_pose(T)
+        bad = self.landmarks.check(ids, R_oc, c_o, self.intrinsics.undistort_points(px))
+        # A landmark that stopped fitting usually means the track drifted: restart both.
+        tr.drop(ids[bad])
+
+    def _triangulate(self):
+        tr, lm = self.tracker, self.landmarks
+        cand, views = [], []
+        for i in tr.ids.tolist():
+            obs = [o for o in tr.history[i] if o[0] in self.fused_poses]
+            if len(obs) < 2:
+                continue
+            cand.append(i)
+            sel = np.linspace(0, len(obs) - 1, _TRIANGULATION_VIEWS).round().astype(int)
+            views.append([obs[k] for k in sel])
+        if not cand:
+            return
+        V = _TRIANGULATION_VIEWS
+        # stamps stay Python ints: ns stamps do not fit a float64 mantissa
+        px = np.array([[o[1:] for o in row] for row in views], float)      # (N, V, 2)
+        xy = self.intrinsics.undistort_points(px.reshape(-1, 2)).reshape(-1, V, 2)
+        Tb = np.array([[self.fused_poses[o[0]] for o in row] for row in views])
+        R_oc, c_o = self._camera_pose(Tb)
+        # Ray angle between the oldest and newest views (rotation-compensated in odom).
+        rays = bearings_odom(R_oc, xy)
+        par = angle_deg(rays[:, 0], rays[:, -1])
+        want = np.array([lm.want(i, p) for i, p in zip(cand, par.tolist())], bool)
+        if want.any():
+            lm.triangulate(np.array(cand)[want], R_oc[want], c_o[want], xy[want])
+
+    def _forget_unused_poses(self):
+        self.landmarks.keep_only(self.tracker.ids)
+        used = {o[0] for h in self.tracker.history.values() for o in h}
+        latest = max(self.fused_poses)
+        for s in [s for s in self.fused_poses if s not in used and s != latest]:
+            del self.fused_poses[s]
+
+    # ----- hand-over ---------------------------------------------------------------------
+    def get_state(self) -> dict:
+        """Everything needed to continue in another process with identical results
+        (picklable: numpy arrays, dicts, lists, numbers)."""
+        return {'version': STATE_VERSION, 'source': self.source,
+                'params': asdict(self.params), 'image_size': self.image_size,
+                'ekf': self.ekf.get_state(), 'tracker': self.tracker.get_state(),
+                'landmarks': self.landmarks.get_state(),
+                'fused_poses': {k: v.copy() for k, v in self.fused_poses.items()},
+                'structure_ms': self.structure_ms}
+
+    def set_state(self, s: dict):
+        if s.get('version') != STATE_VERSION:
+            raise UserError(f'{self.source}: state version {s.get("version")} is not '
+                            f'{STATE_VERSION}')
+        if s.get('source') != self.source or tuple(s.get('image_size', ())) != self.image_size:
+            raise UserError(f'{self.source}: state belongs to {s.get("source")} '
+                            f'{s.get("image_size")}, not this quarter {self.image_size}')
+        if s.get('params') != asdict(self.params):
+            raise UserError(f'{self.source}: state was made with different parameters')
+        self.ekf.set_state(s['ekf'])
+        self.tracker.set_state(s['tracker'])
+        self.landmarks.set_state(s['landmarks'])
+        self.fused_poses = {int(k): np.array(v, float) for k, v in s['fused_poses'].items()}
+        self.structure_ms = float(s['structure_ms'])

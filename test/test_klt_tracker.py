@@ -1,0 +1,116 @@
+"""KLT extraction and tracking inside one quarter, on synthetic textures."""
+import numpy as np
+
+from camera_pose_nodes.klt_tracker import KLTConfig, KLTTracker, margin_for
+from camera_pose_nodes.quarter_region import QuarterRegion
+
+W, H = 640, 480
+
+
+def texture(seed=0, dx=0.0, dy=0.0, w=W, h=H):
+    """Sum of random plane waves sampled at (x - dx, y - dy): an exact sub-pixel shift
+    (warping a raster would quantise the shift to OpenCV's 1/32 px interpolation table)."""
+    rng = np.random.default_rng(seed)
+    n = 60
+    lam = rng.uniform(6, 40, n)
+    th = rng.uniform(0, np.pi, n)
+    ph = rng.uniform(0, 2 * np.pi, n)
+    kx, ky = 2 * np.pi * np.cos(th) / lam, 2 * np.pi * np.sin(th) / lam
+    x = np.arange(w, dtype=np.float64) - dx
+    y = np.arange(h, dtype=np.float64) - dy
+    # separable: cos(kx x + ky y + ph) = Re(e^{i kx x} e^{i ky y} e^{i ph})
+    ex = np.exp(1j * np.outer(kx, x))                   # (n, w)
+    ey = np.exp(1j * (np.outer(ky, y) + ph[:, None]))   # (n, h)
+    img = np.real(ey.T @ ex)
+    img = 0.5 + img / (2.5 * np.sqrt(n))             # fixed scaling: same for every shift
+    return np.round(np.clip(img, 0, 1) * 255).astype(np.uint8)
+
+
+def shifted(seed, dx, dy):
+    return texture(seed, dx, dy)
+
+
+def make(cfg=None, quarter=1):
+    cfg = cfg or KLTConfig()
+    reg = QuarterRegion.of(quarter, W, H, margin_for(cfg))
+    return KLTTracker(reg, cfg), reg
+
+
+def test_subpixel_shift_is_tracked_to_a_tenth_of_a_pixel():
+    tr, reg = make()
+    tr.track(0, reg.crop(shifted(0, 0, 0)))
+    tr.extract(0)
+    assert len(tr.ids) >= tr.cfg.min_features
+    start = dict(zip(tr.ids.tolist(), tr.pts.copy()))
+    n0 = len(start)
+    for k, (dx, dy) in enumerate([(0.3, -0.2), (1.05, 0.55), (2.7, 1.3), (4.45, 2.15)], start=1):
+        tr.track(k, reg.crop(shifted(0, dx, dy)))
+        p0 = np.array([start[i] for i in tr.ids.tolist()])
+        err = np.linalg.norm(tr.pts - p0 - [dx, dy], axis=1)
+        assert err.max() < 0.1, err.max()
+    print(f'\nKLT: {len(tr.ids)}/{n0} tracks kept, max error {err.max():.3f} px, '
+          f'median {np.median(err):.3f} px')
+    assert len(tr.ids) > 0.8 * n0
+    assert all(len(tr.history[i]) == 5 for i in tr.ids.tolist())
+
+
+def test_forward_backward_check_rejects_a_changed_patch():
+    tr, reg = make()
+    tr.track(0, reg.crop(shifted(0, 0, 0)))
+    tr.extract(0)
+    nxt = shifted(0, 0.5, 0.5)
+    # replace a 100x100 block by unrelated texture (an occluder)
+    nxt[40:140, 40:140] = shifted(9, 0, 0)[40:140, 40:140]
+    inside = ((tr.pts[:, 0] > 52) & (tr.pts[:, 0] < 128) & (tr.pts[:, 1] > 52) & (tr.pts[:, 1] < 128))
+    assert inside.sum() >= 2
+    gone = set(tr.ids[inside].tolist())
+    outside = set(tr.ids[~inside].tolist())
+    tr.track(1, reg.crop(nxt))
+    kept = set(tr.ids.tolist())
+    assert not (gone & kept)
+    assert len(outside & kept) > 0.8 * len(outside)
+
+
+def test_extraction_only_below_min_features_and_away_from_tracks():
+    tr, reg = make(KLTConfig(min_features=30, max_features=60))
+    tr.track(0, reg.crop(shifted(0, 0, 0)))
+    assert tr.needs_features()
+    n = tr.extract(0)
+    assert 30 <= n <= 60
+    tr.track(1, reg.crop(shifted(0, 0.5, 0)))
+    assert not tr.needs_features()
+    tr.drop(tr.ids[:len(tr.ids) - 10])                  # occlusion of most features
+    assert tr.needs_features()
+    keep = tr.pts.copy()
+    assert tr.extract(1) > 0
+    new = tr.pts[10:]
+    d = np.linalg.norm(new[:, None] - keep[None], axis=2)
+    assert d.min() >= tr.cfg.min_distance_px - 1e-3
+    assert np.all(reg.owns(tr.pts))
+    assert len(np.unique(tr.ids)) == len(tr.ids)
+
+
+def test_tracks_leaving_the_quarter_are_dropped():
+    tr, reg = make(quarter=1)
+    tr.track(0, reg.crop(shifted(0, 0, 0)))
+    tr.extract(0)
+    tr.track(1, reg.crop(shifted(0, 6.0, 0)))
+    assert np.all(reg.owns(tr.pts))
+    assert tr.pts[:, 0].max() < reg.x1
+
+
+def test_chunked_parallel_equals_sequential():
+    seq, reg = make(KLTConfig(min_features=12, max_features=70))
+    par, _ = make(KLTConfig(min_features=12, max_features=70, parallel_chunks=True))
+    assert par.n_chunks(70) == 6
+    shifts = [(0, 0), (0.4, 0.1), (1.2, -0.7), (2.5, -1.0), (6.0, -2.0)]
+    for k, (dx, dy) in enumerate(shifts):
+        frame = reg.crop(shifted(3, dx, dy))
+        for t in (seq, par):
+            t.track(k, frame)
+            if t.needs_features():
+                t.extract(k)
+        assert np.array_equal(seq.ids, par.ids)
+        assert np.array_equal(seq.pts, par.pts)
+    assert seq.history == par.history
+    par.close()

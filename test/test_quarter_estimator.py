@@ -1,0 +1,137 @@
+"""QuarterEstimator end to end on rendered pixels, with the arbiters simulated."""
+import pickle
+
+import numpy as np
+import cv2
+import pytest
+
+from camera_pose_nodes.camera_model import CameraIntrinsics
+from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, QuarterParams
+from multicam_ego_motion import se3
+from multicam_ego_motion.errors import UserError
+from multicam_ego_motion.rig import paper_rig
+
+W, H, F = 640, 480, 400.0
+RATE = 30.0
+TEXEL = 0.01                                # metres per texture pixel
+WALL_X = 4.0                                # a textured wall at x = 4 m in odom
+
+
+def wall_texture(seed=0):
+    rng = np.random.default_rng(seed)
+    t = cv2.GaussianBlur(rng.uniform(0, 255, (900, 1200)).astype(np.float32), (0, 0), 1.5)
+    t = cv2.normalize(t, None, 0, 255, cv2.NORM_MINMAX)
+    return t.astype(np.uint8)
+
+
+def render(tex, K, T_odom_cam):
+    """Pinhole image of the wall: texel (s, t) is the point X0 + s m e1 + t m e2, so the
+    texture->image map is the homography K [R^T m e1, R^T m e2, R^T (X0 - c)]."""
+    X0 = np.array([WALL_X, 6.0, 4.5])
+    e1, e2 = np.array([0, -1.0, 0]), np.array([0, 0, -1.0])
+    Rt, c = T_odom_cam[:3, :3].T, T_odom_cam[:3, 3]
+    Hm = K @ np.column_stack([Rt @ e1 * TEXEL, Rt @ e2 * TEXEL, Rt @ (X0 - c)])
+    return cv2.warpPerspective(tex, Hm, (W, H), flags=cv2.INTER_LINEAR)
+
+
+def true_pose(t):
+    return se3.make_T(se3.rotvec_to_R([0, 0, 0.1 * t]), [0.2 * t, 0.5 * t, 0.0])
+
+
+@pytest.fixture(scope='module')
+def scene():
+    cam = paper_rig().camera('front')
+    intr = CameraIntrinsics.pinhole(F, F, W / 2, H / 2, W, H)
+    tex = wall_texture()
+    frames = [(int(1e9 * k / RATE), true_pose(k / RATE)) for k in range(60)]
+    images = [render(tex, intr.K, T @ cam.T_base_cam) for _, T in frames]
+    return cam, intr, frames, images
+
+
+PARAMS = QuarterParams(parallax_deg=1.5)
+N_TRUE = 12                                 # frames with the true fused pose fed back
+
+
+def step(est, k, stamp, img, T_true, small=np.eye(6) * 1e-8):
+    e = est.process_image(stamp, img)
+    if k < N_TRUE:
+        est.apply_fused_pose(stamp, T_true, small)
+    elif e.state == 'tracking':             # simulated arbiters: the quarter's own estimate
+        est.apply_fused_pose(stamp, e.T_odom_base, e.covariance)
+    return e
+
+
+def test_tracks_rendered_sequence_and_hands_over_bit_identically(scene):
+    cam, intr, frames, images = scene
+    est = QuarterEstimator(cam, 1, intr, PARAMS)
+    out, snap, stages = [], None, []
+    for k, ((stamp, T), img) in enumerate(zip(frames, images)):
+        if k == 30:
+            snap = pickle.dumps(est.get_state())
+        e = step(est, k, stamp, img, T)
+        out.append(e)
+        stages.append(e.stage_ms)
+        assert e.source == 'front/q1'
+        assert set(e.stage_ms) == {'acquire', 'extract', 'track', 'pose', 'structure'}
+        assert np.all(np.isfinite(e.T_odom_base)) and np.all(np.isfinite(e.covariance))
+    assert out[0].state == 'initializing' and out[0].covariance[0, 0] >= 1e6
+    tracked = [k for k, e in enumerate(out) if e.state == 'tracking']
+    assert tracked and tracked[0] < N_TRUE and all(k in tracked for k in range(N_TRUE, 60))
+    err = np.array([se3.pose_error(out[k].T_odom_base, frames[k][1]) for k in range(N_TRUE, 60)])
+    pos, rot = np.linalg.norm(err[:, :3], axis=1), np.degrees(np.linalg.norm(err[:, 3:], axis=1))
+    ms = {s: np.mean([st[s] for st in stages[1:]]) for s in stages[0]}
+    print(f'\nquarter: pos err max {1e3 * pos.max():.1f} mm (end {1e3 * pos[-1]:.1f}), rot err max '
+          f'{rot.max():.3f} deg; features {out[-1].n_features}, landmarks {out[-1].n_landmarks}, '
+          f'inliers {out[-1].n_inliers}; stage ms ' + ', '.join(f'{s} {v:.2f}' for s, v in ms.items()))
+    assert pos.max() < 0.05 and rot.max() < 0.5
+    for e in out[N_TRUE:]:
+        assert np.linalg.eigvalsh(e.covariance).min() > 0
+
+    # hand-over: a fresh estimator (another process) continues from the pickled state
+    other = QuarterEstimator(cam, 1, intr, PARAMS)
+    other.set_state(pickle.loads(snap))
+    for k in range(30, 60):
+        stamp, T = frames[k]
+        e = step(other, k, stamp, images[k], T)
+        ref = out[k]
+        assert np.array_equal(e.T_odom_base, ref.T_odom_base)
+        assert np.array_equal(e.covariance, ref.covariance)
+        assert (e.state, e.n_features, e.n_landmarks, e.n_inliers) == \
+            (ref.state, ref.n_features, ref.n_landmarks, ref.n_inliers)
+
+
+def test_initializing_until_landmarks_and_reset(scene):
+    cam, intr, frames, images = scene
+    est = QuarterEstimator(cam, 2, intr, PARAMS)
+    e = est.process_image(frames[0][0], images[0])
+    assert e.state == 'initializing' and not e.informative and e.n_features > 0
+    est.apply_fused_pose(frames[0][0], frames[0][1], np.eye(6) * 1e-6)
+    e = est.process_image(frames[1][0], images[1])
+    assert e.state == 'initializing'
+    # the prediction is the fused pose of the previous frame propagated (zero velocity yet)
+    assert np.allclose(e.T_odom_base, frames[0][1], atol=1e-9)
+    est.reset()
+    assert len(est.tracker.ids) == 0 and len(est.landmarks) == 0 and not est.fused_poses
+
+
+def test_rejects_bad_input(scene):
+    cam, intr, frames, images = scene
+    est = QuarterEstimator(cam, 1, intr, PARAMS)
+    with pytest.raises(UserError, match='expected 640x480'):
+        est.process_image(0, images[0][:100])
+    with pytest.raises(UserError, match='gray uint8'):
+        est.process_image(0, images[0].astype(np.float32))
+    with pytest.raises(UserError, match='quarter must be 1..4'):
+        QuarterEstimator(cam, 5, intr, PARAMS)
+    with pytest.raises(UserError, match='min_features'):
+        QuarterParams(min_features=0).validate()
+    with pytest.raises(UserError, match='different parameters'):
+        QuarterEstimator(cam, 1, intr, QuarterParams()).set_state(est.get_state())
+
+
+def test_parameter_table_matches_dataclass():
+    p = QuarterParams()
+    for name, (default, desc, lo, hi) in PARAMETERS.items():
+        assert getattr(p, name) == default and desc
+        assert lo is None or lo <= default <= hi
+    assert set(PARAMETERS) == set(vars(p))
