@@ -93,3 +93,9 @@ class CameraIntrinsics:
         else:
             out, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self.D)
         return out.reshape(-1, 2)
+
+
+def intrinsics_from_msg(msg, camera: str = 'camera') -> CameraIntrinsics:
+    """From a sensor_msgs/CameraInfo (duck-typed: no ROS import here)."""
+    return CameraIntrinsics.from_camera_info(msg.k, msg.d, msg.distortion_model, msg.width,
+                                             msg.height, camera=camera)

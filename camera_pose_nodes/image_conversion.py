@@ -48,3 +48,8 @@ def to_gray(encoding: str, height: int, width: int, step: int, data,
     if channels == 1:
         return np.ascontiguousarray(rows)
     return cv2.cvtColor(np.ascontiguousarray(rows.reshape(height, width, channels)), code)
+
+
+def image_msg_to_gray(msg, expected_size=None) -> np.ndarray:
+    """Gray image from a sensor_msgs/Image (duck-typed: no ROS import here)."""
+    return to_gray(msg.encoding, msg.height, msg.width, msg.step, msg.data, expected_size)

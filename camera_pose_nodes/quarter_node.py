@@ -18,8 +18,8 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
-from camera_pose_nodes.camera_model import CameraIntrinsics
-from camera_pose_nodes.image_conversion import image_to_gray
+from camera_pose_nodes.camera_model import intrinsics_from_msg
+from camera_pose_nodes.image_conversion import image_msg_to_gray
 from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, QuarterParams
 from multicam_ego_motion import diagnostics
 from multicam_ego_motion.errors import UserError
@@ -68,7 +68,7 @@ class QuarterNode(Node):
         if self.intrinsics is not None:
             return
         try:
-            self.intrinsics = CameraIntrinsics.from_camera_info(msg)
+            self.intrinsics = intrinsics_from_msg(msg, self.camera.name)
         except (UserError, ValueError) as e:
             if self.info_error != str(e):
                 self.info_error = str(e)
@@ -114,7 +114,7 @@ class QuarterNode(Node):
     def process(self, msg: Image):
         stamp_ns = stamp_to_ns(msg.header.stamp)
         try:
-            gray = image_to_gray(msg, expected_size=self.estimator.image_size)
+            gray = image_msg_to_gray(msg, expected_size=self.estimator.image_size)
         except (UserError, ValueError) as e:
             self.get_logger().error(f'{self.source}: image rejected: {e}', throttle_duration_sec=5.0)
             self.publish_diag(msg.header.stamp, 'error', f'image rejected: {e}')

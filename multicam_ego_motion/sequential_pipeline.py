@@ -11,8 +11,8 @@ import numpy as np
 
 from arbiter_node.general_fusion import GeneralFusion
 from arbiter_node.quarter_fusion import fuse_quarters
-from camera_pose_nodes.camera_model import CameraIntrinsics
-from camera_pose_nodes.image_conversion import image_to_gray
+from camera_pose_nodes.camera_model import intrinsics_from_msg
+from camera_pose_nodes.image_conversion import image_msg_to_gray
 from camera_pose_nodes.quarter_estimator import QuarterEstimator, QuarterParams
 from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
 from multicam_ego_motion.errors import UserError
@@ -82,7 +82,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
         if topic in info_topic:
             cam = info_topic[topic]
             if cam.name not in estimators:
-                intr = CameraIntrinsics.from_camera_info(msg)
+                intr = intrinsics_from_msg(msg, cam.name)
                 estimators[cam.name] = [QuarterEstimator(cam, q, intr, qp, (msg.width, msg.height))
                                         for q in range(1, 5)]
             continue
@@ -94,7 +94,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
                 break
         frame_stamp = stamp
         if cam.name in estimators:
-            frame[cam.name] = image_to_gray(msg, expected_size=estimators[cam.name][0].image_size)
+            frame[cam.name] = image_msg_to_gray(msg, expected_size=estimators[cam.name][0].image_size)
     if not (max_frames and len(result.fused) >= max_frames):
         flush()
     return result

@@ -13,6 +13,9 @@ REPO = Path(__file__).resolve().parents[1]
 # the environment) talk only to each other.
 os.environ['ROS_DOMAIN_ID'] = str(1 + os.getpid() % 100)
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+# One BLAS thread, as the product runs (multicam_ego_motion/cli.py says why).
+for _var in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
+    os.environ.setdefault(_var, '1')
 
 
 def run_cli(*args, timeout=60, **kw):

@@ -38,7 +38,10 @@ class GraphLauncher:
         self.params_file = str(params_file) if params_file else None
         self.log_dir = Path(log_dir or tempfile.mkdtemp(prefix='ego_motion_workers_'))
         self.log_dir.mkdir(parents=True, exist_ok=True)
-        self.env = env
+        # One BLAS thread per worker: the workers are the parallelism (see cli.py).
+        self.env = dict(env if env is not None else os.environ)
+        for var in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
+            self.env.setdefault(var, '1')
         self.procs = []
         self.placement = static_placement(self.nodes, self.workers)
 
