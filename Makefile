@@ -11,7 +11,9 @@ OUT    ?= out
 
 setup: $(READY)
 
-$(READY): requirements.txt setup.py resource/tf2_msgs/build_tf2_msgs.sh
+TF2_SRC := $(wildcard resource/tf2_msgs/*.sh resource/tf2_msgs/*.txt resource/tf2_msgs/*.xml resource/tf2_msgs/msg/*.msg)
+
+$(READY): requirements.txt setup.py setup.cfg $(TF2_SRC)
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade-strategy only-if-needed -r requirements.txt
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .

@@ -23,10 +23,12 @@ PY="$VENV/bin/python"
 command -v cmake >/dev/null || die "cmake is not on PATH (apt-get install cmake)"
 command -v c++ >/dev/null || die "no C++ compiler on PATH (apt-get install g++)"
 
-# 1. Build-only wheels, pinned (ros-jazzy-* names only; the constraints pin what they pull in).
+# 1. Build-only wheels, pinned (ros-jazzy-* names only). The constraints pin what they pull in:
+#    the ros-* build wheels here, and colcon's and the runtime's dependencies in requirements.txt.
 say "installing build wheels from $HERE/requirements-build.txt into $VENV"
 "$PY" -m pip install --quiet --disable-pip-version-check \
-    -r "$HERE/requirements-build.txt" -c "$HERE/constraints-build.txt"
+    -r "$HERE/requirements-build.txt" \
+    -c "$HERE/constraints-build.txt" -c "$REPO/requirements.txt"
 
 # 2. The wheels' exported CMake targets name the include dirs of the machine that built them
 #    (/opt/python/cp3XX-cp3XX/...). CMake refuses imported targets with missing include dirs,
