@@ -6,7 +6,8 @@
 # usage: bash resource/tf2_msgs/build_tf2_msgs.sh VENV [WORKSPACE]
 #   WORKSPACE defaults to <repo>/build/tf2_msgs_ws (git-ignored).
 #
-# Safe to run again: pip skips what is installed, the CMake patch only touches files that still
+# Safe to run again: it exits at once when the venv holds a build of the same sources; otherwise
+# pip skips what is installed, the CMake patch only touches files that still
 # name the wheel builder's paths, colcon rebuilds incrementally and the install overwrites.
 set -euo pipefail
 
@@ -20,6 +21,15 @@ VENV="$(cd "$1" && pwd)" || die "no venv at $1"
 WS="${2:-$REPO/build/tf2_msgs_ws}"
 PY="$VENV/bin/python"
 [ -x "$PY" ] || die "$PY not found"
+# Skip everything when this venv already holds a build of exactly these sources.
+STAMP="$VENV/share/tf2_msgs/source.sha256"
+DIGEST="$(cd "$HERE" && sha256sum build_tf2_msgs.sh CMakeLists.txt package.xml msg/*.msg \
+    requirements-build.txt constraints-build.txt | sha256sum | cut -d' ' -f1)"
+if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$DIGEST" ] && "$PY" -c 'import tf2_msgs.msg' 2>/dev/null; then
+    say "up to date in $VENV (sources $DIGEST)"
+    exit 0
+fi
+
 command -v cmake >/dev/null || die "cmake is not on PATH (apt-get install cmake)"
 command -v c++ >/dev/null || die "no C++ compiler on PATH (apt-get install g++)"
 
@@ -86,6 +96,8 @@ rm -rf "$VENV/share/colcon-core"
 ( cd "$INSTALL" && find include lib share -type f -o -type l | grep -v '^share/colcon-core/' | sort ) \
     > "$VENV/share/tf2_msgs/installed_files.txt"
 say "installed $(wc -l < "$VENV/share/tf2_msgs/installed_files.txt") files (list in $VENV/share/tf2_msgs/installed_files.txt)"
+
+echo "$DIGEST" > "$STAMP"
 
 # 5. Check in a clean environment, as a user's fresh shell would run it.
 env -i HOME="$HOME" PATH=/usr/bin:/bin "$PY" -c \
