@@ -11,11 +11,14 @@ OUT    ?= out
 
 setup: $(READY)
 
-$(READY): requirements.txt setup.py resource/tf2_msgs/build_tf2_msgs.sh
+TF2_SRC := $(wildcard resource/tf2_msgs/*.sh resource/tf2_msgs/*.txt resource/tf2_msgs/*.xml resource/tf2_msgs/msg/*.msg)
+
+$(READY): requirements.txt setup.py setup.cfg $(TF2_SRC)
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade-strategy only-if-needed -r requirements.txt
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
-	@$(PY) -c 'import tf2_msgs.msg' 2>/dev/null || bash resource/tf2_msgs/build_tf2_msgs.sh $(VENV)
+	@# Returns at once when the venv already has a tf2_msgs built from these sources.
+	bash resource/tf2_msgs/build_tf2_msgs.sh $(VENV)
 	@$(PY) -c 'import rclpy, cv2, filterpy, mcap, tf2_msgs.msg; print("environment ready:", cv2.__version__)'
 	@touch $@
 

@@ -1,0 +1,96 @@
+"""`colcon build` of this ament_python package installs what `ros2 run` looks for.
+
+`ros2 run multicam_ego_motion NAME` finds the package prefix through the ament index
+(share/ament_index/resource_index/packages/<pkg>) and runs the executable file
+<prefix>/lib/multicam_ego_motion/NAME; setup.cfg's install_scripts puts the console scripts
+there. This builds a copy of the package with colcon (from pip) and checks exactly that layout.
+"""
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+PACKAGE = 'multicam_ego_motion'
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ENTRY_POINTS = {
+    'quarter_node': 'camera_pose_nodes.quarter_node:main',
+    'camera_arbiter': 'arbiter_node.camera_arbiter_node:main',
+    'general_arbiter': 'arbiter_node.general_arbiter_node:main',
+    'coordinator': 'multicam_ego_motion.coordinator.coordinator_node:main',
+    'ego-motion': 'multicam_ego_motion.cli:main',
+}
+# Everything a checkout may hold that is not the package's source: venvs, build outputs
+# (including the tf2_msgs workspace), caches.
+NOT_SOURCE = shutil.ignore_patterns(
+    '.git', '.venv', 'build', 'install', 'log', 'out', '__pycache__', '*.egg-info',
+    '.pytest_cache')
+
+
+def _colcon():
+    try:
+        import colcon_core  # noqa: F401
+    except ImportError:
+        pytest.skip('colcon is not importable in this interpreter (pip install -r requirements.txt)')
+    exe = os.path.join(os.path.dirname(sys.executable), 'colcon')
+    if not os.access(exe, os.X_OK):
+        pytest.skip(f'colcon_core is importable but no colcon command beside {sys.executable}')
+    return exe
+
+
+@pytest.fixture(scope='module')
+def install_prefix(tmp_path_factory):
+    colcon = _colcon()
+    ws = tmp_path_factory.mktemp('colcon_ws')
+    shutil.copytree(REPO, ws / 'src' / PACKAGE, ignore=NOT_SOURCE, symlinks=True)
+    # colcon's python setup.py step must run in this interpreter's environment, with no
+    # sourced ROS setup leaking in from the caller.
+    env = {k: v for k, v in os.environ.items() if not k.startswith(('COLCON', 'AMENT_'))}
+    env['PATH'] = os.path.dirname(sys.executable) + os.pathsep + env.get('PATH', '')
+    proc = subprocess.run(
+        [colcon, 'build', '--base-paths', 'src', '--event-handlers', 'console_direct+'],
+        cwd=ws, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, f'colcon build failed:\n{proc.stdout}\n{proc.stderr}'
+    return ws / 'install' / PACKAGE
+
+
+def test_colcon_finds_only_this_package(tmp_path):
+    colcon = _colcon()
+    # resource/tf2_msgs holds a package.xml too: colcon must not pick it up as a second
+    # package of this repository (it stops descending at the package root).
+    ws = tmp_path / 'ws'
+    shutil.copytree(REPO, ws / 'src' / PACKAGE, ignore=NOT_SOURCE, symlinks=True)
+    proc = subprocess.run([colcon, 'list', '--names-only', '--base-paths', 'src'],
+                          cwd=ws, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == [PACKAGE]
+
+
+def test_package_is_in_the_ament_index(install_prefix):
+    marker = install_prefix / 'share' / 'ament_index' / 'resource_index' / 'packages' / PACKAGE
+    assert marker.is_file()
+    assert (install_prefix / 'share' / PACKAGE / 'package.xml').is_file()
+
+
+@pytest.mark.parametrize('name', sorted(ENTRY_POINTS))
+def test_entry_point_installed_where_ros2_run_looks(install_prefix, name):
+    exe = install_prefix / 'lib' / PACKAGE / name
+    found = sorted(os.listdir(exe.parent)) if exe.parent.is_dir() else 'no such directory'
+    assert exe.is_file(), f'{exe} missing; {exe.parent}: {found}'
+    assert os.access(exe, os.X_OK)
+    text = exe.read_text()
+    assert text.startswith('#!') and 'python' in text.splitlines()[0]
+    # The script dispatches to this console_scripts entry (setuptools writes either form).
+    assert (f"'console_scripts', '{name}'" in text
+            or ENTRY_POINTS[name].split(':')[0] in text)
+
+
+def test_entry_points_target_the_right_functions(install_prefix):
+    # The installed metadata is what the scripts load at run time.
+    site = install_prefix / 'lib' / f'python{sys.version_info.major}.{sys.version_info.minor}' / 'site-packages'
+    (egg_info,) = [p for p in site.iterdir() if p.name.endswith('.egg-info')]
+    lines = (egg_info / 'entry_points.txt').read_text().splitlines()
+    installed = dict(
+        (k.strip(), v.strip()) for k, _, v in (ln.partition('=') for ln in lines) if _)
+    assert installed == ENTRY_POINTS
