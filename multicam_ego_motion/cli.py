@@ -35,7 +35,8 @@ def build_parser():
         try:
             importlib.import_module(module).configure_parser(p)
         except ModuleNotFoundError as e:
-            if e.name != module:
+            # Not built yet: the module itself or its parent package is absent.
+            if e.name is None or not (module == e.name or module.startswith(e.name + '.')):
                 raise
             p.set_defaults(_missing=True)
     return parser
