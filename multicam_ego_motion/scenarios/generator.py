@@ -22,8 +22,6 @@ from multicam_ego_motion.scenarios.texture_atlas import TextureAtlas
 from multicam_ego_motion.scenarios.trajectories import SCENARIOS
 from multicam_ego_motion.scenarios.wheel_odometry import WheelOdometry
 
-log = logging.getLogger(__name__)
-
 GROUND_TRUTH_POSE_VAR = (1e-6,) * 6
 GROUND_TRUTH_TWIST_VAR = (1e-6,) * 6
 
