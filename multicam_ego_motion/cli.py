@@ -42,8 +42,9 @@ def build_parser():
         try:
             importlib.import_module(module).configure_parser(p)
         except ModuleNotFoundError as e:
-            if not (module == e.name or module.startswith(e.name + '.')):
-                raise  # a dependency of the module is missing, not the module (or its package)
+            # Not built yet: the module itself or its parent package is absent.
+            if e.name is None or not (module == e.name or module.startswith(e.name + '.')):
+                raise
             p.set_defaults(_missing=True)
     return parser
 

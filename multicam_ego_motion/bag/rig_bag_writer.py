@@ -1,0 +1,116 @@
+"""The bag layout every camera-rig bag of this project has, for synthetic and imported data:
+
+  /<cam>/image_raw    sensor_msgs/Image (mono8), frame <cam>_optical, one per frame
+  /<cam>/camera_info  sensor_msgs/CameraInfo (plumb_bob), with every image
+  /tf_static          tf2_msgs/TFMessage: base_link -> each <cam>_optical, once at the start
+  /ground_truth/odom  nav_msgs/Odometry odom -> base_link, pose in odom, twist in base_link
+  /wheel/odom         nav_msgs/Odometry (optional), same frames
+
+All images of a frame carry the same header stamp; the log time of every message is its
+header stamp.
+"""
+import numpy as np
+from rosbags.typesys import Stores, get_typestore
+
+from multicam_ego_motion.bag.rosbag2_writer import Rosbag2Writer
+from multicam_ego_motion.se3 import R_to_quat_xyzw
+
+# Header stamps of generated and imported bags start here (2024-01-01T00:00:00Z), so that
+# runs are reproducible byte for byte and never mistaken for wall-clock time.
+STAMP_EPOCH_NS = 1_704_067_200 * 1_000_000_000
+
+# Serialized with rosbags, not rclpy: rclpy leaves CDR padding bytes uninitialized, so the
+# same message would not give the same bytes twice (and a generated bag must). The CDR is
+# the same standard encoding a subscriber receives; rosbags also knows tf2_msgs, so
+# /tf_static is written whether or not tf2_msgs is built here.
+_STORE = get_typestore(Stores.ROS2_JAZZY)
+_T = _STORE.types
+
+
+def stamp_msg(time_ns: int):
+    return _T['builtin_interfaces/msg/Time'](sec=int(time_ns // 1_000_000_000),
+                                             nanosec=int(time_ns % 1_000_000_000))
+
+
+def header(time_ns: int, frame_id: str):
+    return _T['std_msgs/msg/Header'](stamp=stamp_msg(time_ns), frame_id=frame_id)
+
+
+def vector3(v):
+    return _T['geometry_msgs/msg/Vector3'](x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+
+def quaternion(R):
+    q = R_to_quat_xyzw(R)
+    return _T['geometry_msgs/msg/Quaternion'](x=float(q[0]), y=float(q[1]), z=float(q[2]),
+                                              w=float(q[3]))
+
+
+class RigBagWriter:
+    def __init__(self, path, rig, intrinsics: dict, compression: str = 'zstd'):
+        """`intrinsics`: camera name -> CameraIntrinsics."""
+        self.rig = rig
+        self.intrinsics = intrinsics
+        self.bag = Rosbag2Writer(path, compression=compression)
+        for cam in rig.cameras:
+            self.bag.add_topic(cam.image_topic, 'sensor_msgs/msg/Image')
+            self.bag.add_topic(cam.camera_info_topic, 'sensor_msgs/msg/CameraInfo')
+
+    def _write(self, topic, typename, msg, time_ns):
+        self.bag.write_serialized(topic, typename, bytes(_STORE.serialize_cdr(msg, typename)),
+                                  time_ns)
+
+    def write_static_transforms(self, time_ns: int):
+        transforms = [_T['geometry_msgs/msg/TransformStamped'](
+            header=header(time_ns, self.rig.base_frame), child_frame_id=cam.frame_id,
+            transform=_T['geometry_msgs/msg/Transform'](
+                translation=vector3(cam.translation), rotation=quaternion(cam.rotation)))
+            for cam in self.rig.cameras]
+        self._write('/tf_static', 'tf2_msgs/msg/TFMessage',
+                    _T['tf2_msgs/msg/TFMessage'](transforms=transforms), time_ns)
+
+    def write_images(self, time_ns: int, images: dict):
+        """One frame: `images` maps camera name -> mono8 array; all share the stamp."""
+        for cam in self.rig.cameras:
+            img = np.ascontiguousarray(images[cam.name], dtype=np.uint8)
+            msg = _T['sensor_msgs/msg/Image'](
+                header=header(time_ns, cam.frame_id), height=img.shape[0], width=img.shape[1],
+                encoding='mono8', is_bigendian=0, step=img.shape[1], data=img.ravel())
+            self._write(cam.image_topic, 'sensor_msgs/msg/Image', msg, time_ns)
+            self._write(cam.camera_info_topic, 'sensor_msgs/msg/CameraInfo',
+                        camera_info(self.intrinsics[cam.name], cam.frame_id, time_ns), time_ns)
+
+    def write_odometry(self, topic: str, time_ns: int, T_odom_base, linear, angular,
+                       pose_variance, twist_variance, frame='odom'):
+        """Pose of base_link in `frame`, twist (linear, angular) in base_link; diagonal
+        covariances from 6-vectors of variances (x, y, z, rot x, rot y, rot z)."""
+        p = T_odom_base[:3, 3]
+        pose = _T['geometry_msgs/msg/PoseWithCovariance'](
+            pose=_T['geometry_msgs/msg/Pose'](
+                position=_T['geometry_msgs/msg/Point'](x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                orientation=quaternion(T_odom_base[:3, :3])),
+            covariance=np.diag(np.asarray(pose_variance, float)).ravel())
+        twist = _T['geometry_msgs/msg/TwistWithCovariance'](
+            twist=_T['geometry_msgs/msg/Twist'](linear=vector3(linear), angular=vector3(angular)),
+            covariance=np.diag(np.asarray(twist_variance, float)).ravel())
+        msg = _T['nav_msgs/msg/Odometry'](header=header(time_ns, frame),
+                                          child_frame_id=self.rig.base_frame, pose=pose, twist=twist)
+        self._write(topic, 'nav_msgs/msg/Odometry', msg, time_ns)
+
+    def close(self):
+        self.bag.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def camera_info(intr, frame_id: str, time_ns: int):
+    return _T['sensor_msgs/msg/CameraInfo'](
+        header=header(time_ns, frame_id), height=int(intr.height), width=int(intr.width),
+        distortion_model='plumb_bob', d=np.asarray(intr.D, float), k=intr.K.ravel(),
+        r=np.eye(3).ravel(), p=intr.P.ravel(), binning_x=0, binning_y=0,
+        roi=_T['sensor_msgs/msg/RegionOfInterest'](x_offset=0, y_offset=0, height=0, width=0,
+                                                   do_rectify=False))

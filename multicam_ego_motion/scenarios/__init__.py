@@ -1,0 +1,1 @@
+"""Synthetic scenarios: trajectories, an indoor world, a ray-casting renderer and the bag writer."""

@@ -1,0 +1,31 @@
+"""Simulated wheel odometry: true body speed and yaw rate corrupted the way wheels slip
+(a constant scale error, a few percent of per-sample multiplicative noise, a yaw-rate bias),
+then dead-reckoned, so its pose drifts away from ground truth."""
+import numpy as np
+
+
+class WheelOdometry:
+    SPEED_NOISE = 0.03       # relative, per sample
+    YAW_RATE_NOISE = 0.03    # relative, per sample
+
+    def __init__(self, rng: np.random.Generator):
+        self.rng = rng
+        self.speed_scale = 1.0 + rng.uniform(0.01, 0.03) * rng.choice([-1.0, 1.0])
+        self.yaw_rate_bias = rng.uniform(0.004, 0.008) * rng.choice([-1.0, 1.0])   # rad/s
+
+    def measure(self, speed: np.ndarray, yaw_rate: np.ndarray):
+        n = len(speed)
+        v = speed * self.speed_scale * (1.0 + self.SPEED_NOISE * self.rng.standard_normal(n))
+        w = yaw_rate * (1.0 + self.YAW_RATE_NOISE * self.rng.standard_normal(n)) + self.yaw_rate_bias
+        return v, w
+
+    @staticmethod
+    def dead_reckon(times: np.ndarray, v: np.ndarray, w: np.ndarray):
+        """(x, y, yaw) in odom from the start, midpoint integration between samples."""
+        dt = np.diff(times)
+        v_mid, w_mid = 0.5 * (v[1:] + v[:-1]), 0.5 * (w[1:] + w[:-1])
+        yaw = np.concatenate([[0.0], np.cumsum(w_mid * dt)])
+        heading = yaw[:-1] + 0.5 * w_mid * dt
+        x = np.concatenate([[0.0], np.cumsum(v_mid * dt * np.cos(heading))])
+        y = np.concatenate([[0.0], np.cumsum(v_mid * dt * np.sin(heading))])
+        return x, y, yaw
