@@ -269,10 +269,11 @@ class BagPlayer:
         from multicam_ego_motion.bag.message_types import message_class
         from multicam_ego_motion.bag.topic_qos import subscribing_qos
         ack = self.options.ack_topic
+        # Discovery, not the graph's frame time, bounds how long finding the publisher takes.
         if not self._wait(lambda: node.get_publishers_info_by_topic(ack),
-                          self.options.ack_timeout_s):
+                          max(self.options.ack_timeout_s, self.options.discovery_timeout_s)):
             raise UserError(f'lockstep: nothing publishes the ack topic {ack} within '
-                            f'{self.options.ack_timeout_s:g} s (is the graph running?)')
+                            f'{max(self.options.ack_timeout_s, self.options.discovery_timeout_s):g} s (is the graph running?)')
         infos = node.get_publishers_info_by_topic(ack)
         typename = infos[0].topic_type
         stamped = self._ack_stamped = has_header(typename)
