@@ -6,7 +6,7 @@ Every covariance an arbiter hands on goes through `condition_covariance`.
 """
 import numpy as np
 
-MIN_VARIANCE = 1e-12        # eigenvalue floor: keeps the matrix invertible
+MIN_VARIANCE = 1e-10        # eigenvalue floor: above se3.is_valid_covariance's 1e-12, keeps it invertible
 MAX_VARIANCE = 1e12         # eigenvalue ceiling: keeps endless prediction from overflowing
 
 
