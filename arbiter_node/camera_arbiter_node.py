@@ -10,7 +10,6 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
 
-from arbiter_node.quarter_fusion import PARAMETERS as FUSION_PARAMETERS
 from arbiter_node.quarter_fusion import fuse_quarters
 from arbiter_node.stamp_sync import StampSynchronizer
 from multicam_ego_motion import diagnostics
@@ -23,6 +22,10 @@ NODE_PARAMETERS = {
     'camera': ('front', 'name of the camera whose quarters this arbiter fuses', None, None),
     'quarters': (4, 'number of quarter nodes of this camera', 1, 4),
     'sync_timeout_s': (0.5, 'longest wait for all quarters of one frame', 0.0, 60.0),
+}
+FUSION_PARAMETERS = {
+    'outlier_chi2': (22.46, 'reject a quarter this far (6-dof Mahalanobis^2) from the robust reference', 1.0, 1e6),
+    'correlation': (0.5, 'assumed error correlation between quarters (shared landmarks); inflates the fused covariance', 0.0, 1.0),
 }
 
 

@@ -1,1 +1,1 @@
-"""The coordinator: places the graph's nodes on worker processes and keeps them running."""
+"""The coordinator: places the graph's nodes on M worker processes (paper section 3) and keeps them running."""

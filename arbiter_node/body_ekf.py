@@ -1,0 +1,185 @@
+"""The general arbiter's own EKF over body pose and twist (filterpy ExtendedKalmanFilter).
+
+Error state x (12): p (odom, m), dtheta (odom, rad; multiplicative about a nominal rotation
+R_nom, folded into R_nom and zeroed after every predict and update, so it stays small),
+v (base_link, m/s; Nav2 wants twist in base_link), w (base_link, rad/s).
+Pose convention is multicam_ego_motion.se3: p = p_hat + dp, R = exp([dtheta]x) R_hat.
+
+Process model: constant body-frame velocity, p' = p + R v dt, R' = R exp(w dt), with white
+linear and angular acceleration noise in the body frame. Linearised (first order):
+  dp'  = dp - [R v dt]x dtheta + R dt dv
+  dth' = dtheta + R dt dw
+Because dtheta is zero at predict time, F @ x is the exact Euler step: its dtheta block
+becomes R w dt, and exp(R w dt) R = R exp(w dt) is folded into R_nom.
+
+Everything the filter holds is guarded: covariances are symmetrised and their eigenvalues
+clamped, non-finite inputs are refused, a failed step restores the previous state.
+"""
+from dataclasses import dataclass
+from typing import Optional, Sequence, Tuple
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+
+from arbiter_node.covariance import condition_covariance, mahalanobis2
+from multicam_ego_motion import se3
+
+MAX_VARIANCE = 1e8          # ~10 km / 1e4 rad std: beyond this the state means nothing anyway
+
+
+@dataclass
+class BodyEkfParams:
+    accel_noise: float = 0.25            # (m/s^2)^2 / Hz: white linear acceleration, body frame
+    angular_accel_noise: float = 0.25    # (rad/s^2)^2 / Hz
+    initial_twist_std: float = 1.0       # m/s and rad/s, for (re)initialisation
+    max_dt: float = 1.0                  # s: a longer gap is integrated in steps of this size
+                                         # (at most 100 steps)
+
+
+class BodyEKF:
+    def __init__(self, params: Optional[BodyEkfParams] = None):
+        self.params = params or BodyEkfParams()
+        self.kf = ExtendedKalmanFilter(dim_x=12, dim_z=6)
+        self.R_nom = np.eye(3)
+        self.reinitialize(np.eye(4), np.eye(6) * 1e-9)
+
+    # ------------------------------------------------------------------ state access
+    def reinitialize(self, T: np.ndarray, cov: np.ndarray, twist: Optional[np.ndarray] = None,
+                     twist_cov: Optional[np.ndarray] = None):
+        """Restart at pose T (base_link in odom) with 6x6 covariance; twist defaults to zero
+        with `initial_twist_std`."""
+        if not np.all(np.isfinite(T)):
+            raise ValueError('reinitialize: non-finite pose')
+        U, _, Vt = np.linalg.svd(T[:3, :3])          # re-orthonormalise whatever we were given
+        self.R_nom = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
+        x = np.zeros((12, 1))
+        x[:3, 0] = T[:3, 3]
+        if twist is not None and np.all(np.isfinite(twist)):
+            x[6:, 0] = twist
+        P = np.zeros((12, 12))
+        P[:6, :6] = condition_covariance(cov, max_eig=MAX_VARIANCE)
+        tc = twist_cov if twist_cov is not None else np.eye(6) * self.params.initial_twist_std ** 2
+        P[6:, 6:] = condition_covariance(tc, max_eig=MAX_VARIANCE)
+        self.kf.x = x
+        self.kf.P = P
+
+    @property
+    def T(self) -> np.ndarray:
+        return se3.make_T(self.R_nom, self.kf.x[:3, 0].copy())
+
+    @property
+    def pose_covariance(self) -> np.ndarray:
+        return condition_covariance(self.kf.P[:6, :6], max_eig=MAX_VARIANCE)
+
+    @property
+    def twist(self) -> np.ndarray:
+        """(vx, vy, vz, wx, wy, wz) in base_link."""
+        return self.kf.x[6:, 0].copy()
+
+    @property
+    def twist_covariance(self) -> np.ndarray:
+        return condition_covariance(self.kf.P[6:, 6:], max_eig=MAX_VARIANCE)
+
+    # ------------------------------------------------------------------ internals
+    def _snapshot(self):
+        return self.R_nom.copy(), self.kf.x.copy(), self.kf.P.copy()
+
+    def _restore(self, snap):
+        self.R_nom, self.kf.x, self.kf.P = snap[0], snap[1], snap[2]
+
+    def _fold_rotation(self):
+        """Move dtheta into the nominal rotation (re-centre the error state)."""
+        dth = self.kf.x[3:6, 0]
+        self.R_nom = se3.rotvec_to_R(dth) @ self.R_nom
+        U, _, Vt = np.linalg.svd(self.R_nom)        # keep it orthonormal over long runs
+        self.R_nom = U @ Vt
+        self.kf.x[3:6, 0] = 0.0
+
+    def _healthy(self) -> bool:
+        return (np.all(np.isfinite(self.kf.x)) and np.all(np.isfinite(self.kf.P))
+                and np.all(np.isfinite(self.R_nom)))
+
+    def _finish(self, snap) -> bool:
+        self._fold_rotation()
+        self.kf.P = condition_covariance(self.kf.P, max_eig=MAX_VARIANCE)
+        if not self._healthy():
+            self._restore(snap)
+            return False
+        return True
+
+    # ------------------------------------------------------------------ filter steps
+    def predict(self, dt: float):
+        """Constant body-velocity prediction over dt seconds (dt <= 0 or non-finite: no-op)."""
+        if not np.isfinite(dt) or dt <= 0:
+            return
+        # long gaps in at most 100 steps: bounded cost whatever the gap
+        n = int(min(100, np.ceil(dt / self.params.max_dt)))
+        for _ in range(n):
+            self._predict_step(dt / n)
+
+    def _predict_step(self, dt: float):
+        snap = self._snapshot()
+        R = self.R_nom
+        v = self.kf.x[6:9, 0]
+        F = np.eye(12)
+        F[0:3, 3:6] = -se3.skew(R @ v * dt)
+        F[0:3, 6:9] = R * dt
+        F[3:6, 9:12] = R * dt
+        qa, qw = self.params.accel_noise, self.params.angular_accel_noise
+        Q = np.zeros((12, 12))
+        for i, q in ((0, qa), (3, qw)):          # (p, v) and (theta, w): white-acceleration blocks
+            Q[i:i + 3, i:i + 3] = np.eye(3) * q * dt ** 3 / 3
+            Q[i:i + 3, i + 6:i + 9] = R * q * dt ** 2 / 2   # odom position vs body velocity
+            Q[i + 6:i + 9, i:i + 3] = R.T * q * dt ** 2 / 2
+            Q[i + 6:i + 9, i + 6:i + 9] = np.eye(3) * q * dt
+        self.kf.F, self.kf.Q = F, Q
+        self.kf.predict()
+        self._finish(snap)
+
+    def pose_innovation(self, T_meas: np.ndarray, cov: np.ndarray) -> Tuple[np.ndarray, float]:
+        """Innovation (se3 error of T_meas about the estimate) and its squared Mahalanobis distance."""
+        y = se3.pose_error(T_meas, self.T)
+        return y, mahalanobis2(y, self.kf.P[:6, :6] + cov)
+
+    def update_pose(self, T_meas: np.ndarray, cov: np.ndarray, gate_chi2: float = float('inf')) -> Tuple[bool, float]:
+        """6-dof pose measurement (base_link in odom, se3-convention covariance).
+        Returns (accepted, squared Mahalanobis distance of the innovation)."""
+        if not (np.all(np.isfinite(T_meas)) and np.all(np.isfinite(cov))):
+            return False, float('inf')
+        cov = condition_covariance(cov, max_eig=MAX_VARIANCE)
+        y, d2 = self.pose_innovation(T_meas, cov)
+        if not np.isfinite(d2) or d2 > gate_chi2:
+            return False, d2
+        H = np.hstack([np.eye(6), np.zeros((6, 6))])
+        # z = H x + y makes filterpy's residual z - H x equal the se3 innovation
+        z = H @ self.kf.x + y.reshape(6, 1)
+        return self._update(z, H, cov), d2
+
+    def update_twist(self, twist: Sequence[float], cov: np.ndarray,
+                     axes: Sequence[int] = (0, 1, 2, 3, 4, 5), gate_chi2: float = float('inf')) -> Tuple[bool, float]:
+        """Body-twist measurement (e.g. wheel odometry): twist and cov are 6 / 6x6 in
+        (vx, vy, vz, wx, wy, wz) base_link order; only `axes` are used."""
+        axes = list(axes)
+        z6 = np.asarray(twist, dtype=float)
+        sub = np.asarray(cov, dtype=float)[np.ix_(axes, axes)]
+        if not (np.all(np.isfinite(z6[axes])) and np.all(np.isfinite(sub))) or not axes:
+            return False, float('inf')
+        sub = condition_covariance(sub, max_eig=MAX_VARIANCE)
+        H = np.zeros((len(axes), 12))
+        for r, a in enumerate(axes):
+            H[r, 6 + a] = 1.0
+        z = z6[axes].reshape(-1, 1)
+        y = (z - H @ self.kf.x)[:, 0]
+        d2 = mahalanobis2(y, H @ self.kf.P @ H.T + sub)
+        if d2 > gate_chi2:
+            return False, d2
+        return self._update(z, H, sub), d2
+
+    def _update(self, z, H, Rm) -> bool:
+        snap = self._snapshot()
+        try:
+            self.kf.update(z, lambda x: H, lambda x: H @ x, R=Rm)
+        except np.linalg.LinAlgError:
+            self._restore(snap)
+            return False
+        return self._finish(snap)

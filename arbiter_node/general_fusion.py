@@ -1,0 +1,184 @@
+"""General arbiter core (paper T_5 / T_GA), ROS-free: cameras -> odometry.
+
+Per frame: median filter across cameras (camera_median) -> covariance-weighted fusion of the
+inliers (quarter_fusion.information_fusion, correlation-inflated) -> BodyEKF update (gated).
+No informative camera: predict only, with the wheel-odometry twist prior when given.
+Scale: the rig-scale observer (rig_scale) is fed when per-camera translation directions are
+available and `scale_observed` reports it; until it is wired to correct anything, metric
+scale comes from the wheel prior (when configured) and from the landmarks.
+"""
+from dataclasses import dataclass, field
+from typing import Dict, List, Mapping, Optional, Tuple
+
+import numpy as np
+
+from arbiter_node.body_ekf import BodyEKF, BodyEkfParams
+from arbiter_node.camera_median import median_filter
+from arbiter_node.covariance import condition_covariance
+from arbiter_node.quarter_fusion import CHI2_6DOF_999, information_fusion
+from arbiter_node.rig_scale import RigScaleResult, relative_motion, scale_correction, solve_rig_translation
+from camera_pose_nodes.pose_estimate import PoseEstimate
+from multicam_ego_motion.rig import Rig
+
+FUSED_STATES = ('initializing', 'tracking', 'lost', 'dead_reckoning')
+
+# name -> (default, description, min, max): what a node declares as ROS parameters.
+PARAMETERS = {
+    'median_mahalanobis_gate': (CHI2_6DOF_999, 'chi-square (6 dof) gate of a camera against the cross-camera median', 1.0, 1e6),
+    'median_max_translation_m': (0.5, 'absolute gate: a camera farther than this from the median is rejected (m)', 0.01, 100.0),
+    'median_max_rotation_rad': (0.2, 'absolute gate: a camera rotated more than this from the median is rejected (rad)', 0.001, 3.15),
+    'median_use_prior': (True, 'with fewer than 3 cameras, let the EKF prediction vote in the median', None, None),
+    'camera_correlation': (0.0, 'assumed error correlation between cameras (shared fed-back landmarks); inflates the fused covariance by 1+(n-1)rho', 0.0, 1.0),
+    'ekf_gate_chi2': (CHI2_6DOF_999, 'chi-square (6 dof) gate of the fused camera pose against the EKF prediction', 1.0, 1e6),
+    'max_consecutive_rejections': (5, 'after this many gated-out fused poses in a row, re-initialise the EKF on the cameras', 1, 1000),
+    'accel_noise': (0.25, 'EKF process noise: white linear acceleration, body frame ((m/s^2)^2/Hz)', 1e-6, 100.0),
+    'angular_accel_noise': (0.25, 'EKF process noise: white angular acceleration, body frame ((rad/s^2)^2/Hz)', 1e-6, 100.0),
+    'initial_pose_std': (1e-4, 'pose std at start: odom starts at the robot (REP-105), so tiny (m, rad)', 1e-6, 10.0),
+    'initial_twist_std': (1.0, 'twist std at (re)initialisation (m/s, rad/s)', 1e-3, 100.0),
+    'max_dt': (1.0, 'prediction step cap (s); longer gaps are integrated in steps', 0.01, 10.0),
+    'lost_timeout_s': (2.0, 'without camera updates or wheel prior for this long, the state is lost', 0.1, 600.0),
+    'wheel_planar_only': (True, 'use only vx, vy, wz of the wheel twist (a wheeled base measures nothing else)', None, None),
+    'wheel_gate_chi2': (1e3, 'chi-square gate of the wheel twist against the EKF twist (slip detection)', 1.0, 1e9),
+    'scale_direction_sigma_rad': (0.01, 'angular std of a camera translation direction fed to the rig-scale observer (rad)', 1e-5, 0.5),
+    'scale_min_rotation_rad': (0.02, 'rig-scale observer: below this body rotation scale is unobservable (rad)', 1e-4, 1.0),
+    'scale_max_relative_std': (0.1, 'rig-scale observer: trust t only when its predicted relative error is below this', 1e-3, 1.0),
+}
+
+
+def default_params() -> Dict[str, object]:
+    return {k: v[0] for k, v in PARAMETERS.items()}
+
+
+@dataclass
+class FusedEstimate:
+    stamp_ns: int
+    T_odom_base: np.ndarray
+    pose_covariance: np.ndarray            # 6x6, se3 convention (odom)
+    twist: np.ndarray                      # (vx, vy, vz, wx, wy, wz) in base_link
+    twist_covariance: np.ndarray           # 6x6
+    state: str                             # one of FUSED_STATES
+    scale_observed: bool = False
+    scale_source: str = 'landmarks'        # 'rig' | 'wheel' | 'landmarks' | 'none'
+    scale_ratio: Optional[float] = None    # rig-observed / estimated translation (diagnostic)
+    cameras_used: List[str] = field(default_factory=list)
+    cameras_rejected: Dict[str, str] = field(default_factory=dict)
+    cameras_missing: List[str] = field(default_factory=list)     # in the rig, no estimate or uninformative
+    ekf_d2: Optional[float] = None         # Mahalanobis^2 of the fused camera pose vs prediction
+
+
+class GeneralFusion:
+    def __init__(self, rig: Rig, params: Optional[Mapping[str, object]] = None):
+        self.rig = rig
+        self.params = default_params()
+        for k, v in (params or {}).items():
+            if k not in PARAMETERS:
+                raise ValueError(f'unknown general-fusion parameter {k!r}')
+            self.params[k] = v
+        self.reset()
+
+    def reset(self):
+        p = self.params
+        self.ekf = BodyEKF(BodyEkfParams(accel_noise=p['accel_noise'], angular_accel_noise=p['angular_accel_noise'],
+                                         initial_twist_std=p['initial_twist_std'], max_dt=p['max_dt']))
+        self.ekf.reinitialize(np.eye(4), np.eye(6) * p['initial_pose_std'] ** 2)
+        self.last_stamp_ns: Optional[int] = None
+        self.last_support_ns: Optional[int] = None     # last camera update or wheel prior
+        self.has_tracked = False
+        self.rejections = 0
+        self.last_T: np.ndarray = np.eye(4)
+        self.last_scale: Optional[RigScaleResult] = None
+
+    # -------------------------------------------------------------- scale hook
+    def observe_scale(self, T_prev: np.ndarray, T_now: np.ndarray,
+                      camera_directions: Mapping[str, np.ndarray]) -> RigScaleResult:
+        """Rig-scale observer: per-camera translation directions over [prev, now] (base_link
+        at prev, up to scale), body rotation from the fused poses."""
+        R, _ = relative_motion(T_prev, T_now)
+        names = self.rig.names
+        dirs = [camera_directions.get(n) for n in names]
+        centres = [c.translation for c in self.rig.cameras]
+        self.last_scale = solve_rig_translation(
+            R, dirs, centres, direction_sigma_rad=self.params['scale_direction_sigma_rad'],
+            min_rotation_rad=self.params['scale_min_rotation_rad'],
+            max_relative_std=self.params['scale_max_relative_std'], names=names)
+        return self.last_scale
+
+    # -------------------------------------------------------------- per frame
+    def process(self, stamp_ns: int, camera_estimates: Mapping[str, PoseEstimate],
+                wheel_twist: Optional[Tuple[np.ndarray, np.ndarray]] = None,
+                camera_directions: Optional[Mapping[str, np.ndarray]] = None) -> FusedEstimate:
+        """One frame. wheel_twist = (twist 6, covariance 6x6) in base_link, or None.
+        camera_directions: optional per-camera translation directions since the last frame."""
+        p = self.params
+        if self.last_stamp_ns is not None:
+            self.ekf.predict((stamp_ns - self.last_stamp_ns) * 1e-9)   # dt <= 0 is a no-op
+        self.last_stamp_ns = stamp_ns if self.last_stamp_ns is None else max(stamp_ns, self.last_stamp_ns)
+        T_prev = self.last_T
+
+        prior = (self.ekf.T, self.ekf.pose_covariance) if p['median_use_prior'] and self.has_tracked else None
+        med = median_filter(dict(camera_estimates), p['median_mahalanobis_gate'], p['median_max_translation_m'],
+                            p['median_max_rotation_rad'], prior)
+        out_rejected = dict(med.rejected)
+        missing = sorted(set(self.rig.names) - set(camera_estimates)) + sorted(med.uninformative)
+        used: List[str] = []
+        d2 = None
+        camera_update = False
+        if med.inliers:
+            names = sorted(med.inliers)
+            ests = [med.inliers[n] for n in names]
+            T_f, cov_f = information_fusion([e.T_odom_base for e in ests], [e.covariance for e in ests], med.T_median)
+            cov_f = condition_covariance(cov_f * (1.0 + (len(ests) - 1) * p['camera_correlation']))
+            if not self.has_tracked:
+                # first camera fix: the cameras define the pose (odom origin was the start)
+                self.ekf.reinitialize(T_f, cov_f)
+                camera_update, d2 = True, 0.0
+            else:
+                camera_update, d2 = self.ekf.update_pose(T_f, cov_f, p['ekf_gate_chi2'])
+                if not camera_update:
+                    self.rejections += 1
+                    if self.rejections >= p['max_consecutive_rejections']:
+                        # the filter, not the cameras, is most likely wrong by now
+                        self.ekf.reinitialize(T_f, cov_f, twist=self.ekf.twist)
+                        camera_update = True
+            if camera_update:
+                used = names
+                self.rejections = 0
+                self.has_tracked = True
+            else:
+                for n in names:
+                    out_rejected[n] = f'fused pose gated out by the EKF (mahalanobis {d2:.1f})'
+
+        wheel_used = False
+        if wheel_twist is not None:
+            axes = (0, 1, 5) if p['wheel_planar_only'] else tuple(range(6))
+            wheel_used, _ = self.ekf.update_twist(wheel_twist[0], wheel_twist[1], axes, p['wheel_gate_chi2'])
+
+        if camera_update or wheel_used:
+            self.last_support_ns = stamp_ns
+        if camera_update:
+            state = 'tracking'
+        elif not self.has_tracked:
+            state = 'initializing'
+        elif (self.last_support_ns is not None
+              and (stamp_ns - self.last_support_ns) * 1e-9 <= p['lost_timeout_s']):
+            state = 'dead_reckoning'
+        else:
+            state = 'lost'
+
+        T_now = self.ekf.T
+        scale_ratio = None
+        scale_source = 'wheel' if wheel_used else ('landmarks' if self.has_tracked else 'none')
+        rig_observed = False
+        if camera_directions:
+            r = self.observe_scale(T_prev, T_now, camera_directions)
+            rig_observed = r.observed
+            if r.observed:
+                scale_source = 'rig'
+                scale_ratio = scale_correction(relative_motion(T_prev, T_now)[1], r)
+        self.last_T = T_now
+        return FusedEstimate(
+            stamp_ns=stamp_ns, T_odom_base=T_now, pose_covariance=self.ekf.pose_covariance,
+            twist=self.ekf.twist, twist_covariance=self.ekf.twist_covariance, state=state,
+            scale_observed=bool(rig_observed or wheel_used), scale_source=scale_source,
+            scale_ratio=scale_ratio, cameras_used=used, cameras_rejected=out_rejected,
+            cameras_missing=missing, ekf_d2=d2)
