@@ -19,16 +19,20 @@ $(READY): requirements.txt setup.py setup.cfg $(TF2_SRC)
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
 	@# Returns at once when the venv already has a tf2_msgs built from these sources.
 	bash resource/tf2_msgs/build_tf2_msgs.sh $(VENV)
+	@# setup.cfg puts console scripts where `ros2 run` looks (lib/<package>); put the CLI on the venv's PATH too.
+	ln -sf ../lib/multicam_ego_motion/ego-motion $(EGO)
 	@$(PY) -c 'import rclpy, cv2, filterpy, mcap, tf2_msgs.msg; print("environment ready:", cv2.__version__)'
 	@touch $@
 
 run: $(READY)
+	rm -rf $(OUT)/default
 	$(EGO) replay bags/default --out $(OUT)/default
 
 test: $(READY)
 	$(PY) -m pytest test
 
 bench: $(READY)
+	rm -rf $(OUT)/bench
 	$(EGO) bench bags/default --out $(OUT)/bench
 
 # Regenerates the committed default bag (deterministic for the seed): the full 25 m loop in
