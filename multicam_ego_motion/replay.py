@@ -27,6 +27,8 @@ def configure_parser(p):
     p.add_argument('--ground-truth-topic', default='/ground_truth/odom')
     p.add_argument('--ack-timeout', type=float, default=120.0, help='lockstep: longest wait per frame [s]')
     p.add_argument('--no-wheel', action='store_true', help='do not fuse /wheel/odom')
+    p.add_argument('--start-offset', type=float, default=0.0, help='skip this much of the bag [s]')
+    p.add_argument('--duration', type=float, help='play only this much of the bag [s]')
 
 
 def resolve_rig(bag_reader, rig_arg):
@@ -126,7 +128,8 @@ def run(args) -> int:
         recorder.wait_for_topics(10.0)
         player = BagPlayer(args.bag, PlayOptions(
             lockstep=lockstep, rate=args.rate or 1.0, ack_topic='/odom',
-            ack_timeout_s=args.ack_timeout, discovery_s=0.5, progress=None))
+            ack_timeout_s=args.ack_timeout, discovery_s=0.5, progress=None,
+            start_offset_s=args.start_offset, duration_s=args.duration))
         t_play = time.monotonic()
         result = player.play(node)
         wall = time.monotonic() - t_play
