@@ -108,7 +108,7 @@ class Rosbag2Reader:
                     reader = make_reader(stream)
                     for schema, channel, msg in reader.iter_messages(
                             topics=list(topics) if topics is not None else None,
-                            start_time=start_ns, end_time=end_ns, log_time_order=True):
+                            starting_at=start_ns, ending_before=end_ns, log_time_order=True):
                         yield BagMessage(channel.topic, schema.name if schema else '',
                                          msg.data, msg.log_time)
             except _CORRUPT as e:
