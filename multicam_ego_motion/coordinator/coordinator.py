@@ -66,7 +66,8 @@ class CoordinatorStats:
 class Coordinator:
     def __init__(self, rig, rig_file, params_file=None, workers: int = None, overrides=None,
                  log_dir=None, env=None, rebalance: bool = True, threshold: float = 0.15,
-                 hysteresis_frames: int = 10, migrate_every: int = 0, logger=print):
+                 hysteresis_frames: int = 10, migrate_every: int = 0, spare: bool = True,
+                 logger=print):
         self.rig = rig
         self.specs = {n.key: n for n in graph_nodes(rig, str(rig_file), overrides=overrides)}
         self.n_workers = max(1, int(workers or os.cpu_count() or 1))
@@ -90,6 +91,10 @@ class Coordinator:
         self.on_restored: List[Callable[[int], None]] = []
         self.link_waiter: Optional[Callable[[dict, str], None]] = None   # see migrate()
         self.workers = [WorkerHandle(i) for i in range(self.n_workers)]
+        # A hot spare (started, imports done, no nodes) takes over a dead worker: a cold
+        # start of Python + rclpy + the node modules takes seconds on a loaded machine.
+        self.spare = spare
+        self._spare: Optional[WorkerHandle] = None
         self._replies: Dict[int, dict] = {}
         self._reply_cond = threading.Condition()
         self._req = itertools.count(1)
@@ -118,6 +123,9 @@ class Coordinator:
         for h in self.workers:
             self._wait_ready(h)
             self._attach_all(h)
+        if self.spare:
+            self._spare = WorkerHandle(-1)
+            self._spawn(self._spare)
         self._watchdog = threading.Thread(target=self._watch, daemon=True, name='coordinator-watchdog')
         self._watchdog.start()
         return self
@@ -126,10 +134,11 @@ class Coordinator:
         self._stopping = True
         with self._dead_cond:
             self._dead_cond.notify_all()
-        for h in self.workers:
+        handles = self.workers + ([self._spare] if self._spare is not None else [])
+        for h in handles:
             self._send(h, (control.STOP,))
         deadline = time.monotonic() + timeout
-        for h in self.workers:
+        for h in handles:
             if h.proc is None:
                 continue
             try:
@@ -162,7 +171,8 @@ class Coordinator:
             raise UserError(self._fatal)
 
     def worker_pids(self) -> List[int]:
-        return [h.proc.pid for h in self.workers if h.proc is not None and h.proc.poll() is None]
+        handles = self.workers + ([self._spare] if self._spare is not None else [])
+        return [h.proc.pid for h in handles if h.proc is not None and h.proc.poll() is None]
 
     def nodes_of(self, worker: int) -> List[str]:
         return [k for k, w in self.placement.items() if w == worker]
@@ -173,7 +183,7 @@ class Coordinator:
         h.alive = False
         if h.log:
             h.log.close()
-        h.log = open(self.log_dir / f'worker_{h.index}.log', 'a')
+        h.log = open(self.log_dir / (f'worker_{h.index}.log' if h.index >= 0 else 'worker_spare.log'), 'a')
         cmd = [sys.executable, '-m', WORKER_MODULE, '--index', str(h.index),
                '--control', self._listener.address]
         if self.params_file:
@@ -188,7 +198,7 @@ class Coordinator:
                                 f'{self._log_tail(h)}')
 
     def _log_tail(self, h):
-        lines = (self.log_dir / f'worker_{h.index}.log').read_text().strip().splitlines()
+        lines = (self.log_dir / (f'worker_{h.index}.log' if h.index >= 0 else 'worker_spare.log')).read_text().strip().splitlines()
         return lines[-1] if lines else 'no output'
 
     def _accept_loop(self):
@@ -200,10 +210,13 @@ class Coordinator:
                 if self._stopping:
                     return
                 continue
-            if hello[0] != control.HELLO or not 0 <= hello[1] < len(self.workers):
+            if hello[0] != control.HELLO or not -1 <= hello[1] < len(self.workers):
                 conn.close()
                 continue
-            h = self.workers[hello[1]]
+            h = self.workers[hello[1]] if hello[1] >= 0 else self._spare
+            if h is None:
+                conn.close()
+                continue
             h.conn, h.pid, h.alive = conn, hello[2], True
             threading.Thread(target=self._read_loop, args=(h, conn), daemon=True,
                              name=f'coordinator-worker-{h.index}').start()
@@ -281,6 +294,11 @@ class Coordinator:
                 if self._stopping:
                     return
                 index, t_dead = self._dead.pop(0)
+            if index < 0:                       # the spare itself died: start another
+                self.say('the spare worker died; starting another')
+                self._spare = WorkerHandle(-1)
+                self._spawn(self._spare)
+                continue
             h = self.workers[index]
             if h.proc is not None:
                 h.proc.wait()
@@ -288,8 +306,13 @@ class Coordinator:
                      f'with {", ".join(self.nodes_of(index))}')
             try:
                 with self._ops:
-                    self._spawn(h)
-                    self._wait_ready(h)
+                    spare, self._spare = self._spare, None
+                    if spare is not None and spare.alive:
+                        spare.index = index          # the spare becomes worker `index`
+                        self.workers[index] = h = spare
+                    else:
+                        self._spawn(h)
+                        self._wait_ready(h)
                     self._attach_all(h)
             except UserError as e:
                 self._fatal = f'worker {index} could not be restored: {e}'
@@ -301,6 +324,9 @@ class Coordinator:
             self.say(f'worker {index} restored in {dt:.2f} s')
             for cb in self.on_restored:
                 cb(index)
+            if self.spare and self._spare is None and not self._stopping:
+                self._spare = WorkerHandle(-1)
+                self._spawn(self._spare)
 
     # ---- migration and rebalancing ---------------------------------------------------------
     def migrate(self, key: str, dst: int):

@@ -79,7 +79,7 @@ class Worker:
         self.inbox = queue.Queue()
         self.deferred = []              # (predicate, action, deadline): waits off the executor
         self.hosted = {}                # key -> node
-        self.node = rclpy.create_node(f'ego_motion_worker_{index}')
+        self.node = rclpy.create_node(f'ego_motion_worker_{index}' if index >= 0 else f'ego_motion_worker_spare_{os.getpid()}')
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
         # The reader thread only queues; nodes are created and destroyed in the executor.
@@ -185,11 +185,15 @@ class Worker:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--index', type=int, required=True)
+    ap.add_argument('--index', type=int, required=True, help='worker index; -1: a hot spare')
     ap.add_argument('--control', required=True, help='address of the coordinator\'s control channel')
     ap.add_argument('--params-file')
     args = ap.parse_args(argv)
     _die_with_parent()
+    # Import the node modules before saying hello: a spare that takes over a dead worker
+    # then only creates nodes (restore within 2 s even on a loaded machine).
+    for kind in ('quarter', 'camera_arbiter', 'general_arbiter'):
+        node_class(kind)
     conn = control.connect(args.control)
     signal.signal(signal.SIGTERM, lambda *a: (_ for _ in ()).throw(SystemExit(0)))
     rclpy.init()
