@@ -51,7 +51,9 @@ class CameraArbiterNode(Node):
     def release(self, groups):
         for g in groups:
             t0 = time.perf_counter()
-            fused = fuse_quarters(list(g.items.values()), source=self.camera, **self.fusion_params)
+            # Quarter order, not arrival order: float sums must not depend on the scheduler.
+            fused = fuse_quarters([g.items[k] for k in sorted(g.items)], source=self.camera,
+                                  **self.fusion_params)
             self.pub.publish(estimate_to_msg(fused))
             ms = (time.perf_counter() - t0) * 1e3
             level = 'warn' if g.missing or not fused.informative else 'ok'

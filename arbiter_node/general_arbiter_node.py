@@ -56,6 +56,7 @@ class GeneralArbiterNode(Node):
         self.wheel = []                      # (stamp_ns, twist 6, cov 6x6), newest last
         self.path = Path()
         self.path.header.frame_id = p['odom_frame']
+        self.on_frame_done = None            # hook(node) after a frame was published (snapshots)
         self.pub_fused = self.create_publisher(PoseWithCovarianceStamped, '/ego_motion/fused_pose', RELIABLE)
         self.pub_odom = self.create_publisher(Odometry, '/odom', RELIABLE)
         self.pub_tf = self.create_publisher(TFMessage, '/tf', RELIABLE)
@@ -101,13 +102,32 @@ class GeneralArbiterNode(Node):
     def release(self, groups):
         for g in groups:
             t0 = time.perf_counter()
-            fused = self.fusion.process(g.stamp_ns, g.items, wheel_twist=self.wheel_at(g.stamp_ns))
+            # Rig order, not arrival order: float sums must not depend on the scheduler.
+            items = {n: g.items[n] for n in self.rig.names if n in g.items}
+            fused = self.fusion.process(g.stamp_ns, items, wheel_twist=self.wheel_at(g.stamp_ns))
             ms = (time.perf_counter() - t0) * 1e3
             if not (np.all(np.isfinite(fused.T_odom_base)) and is_valid_covariance(fused.pose_covariance)
                     and is_valid_covariance(fused.twist_covariance)):
                 self.get_logger().error(f'fused estimate at {g.stamp_ns} is not finite/PD: not published')
                 continue
             self.publish(fused, g, ms)
+            if self.on_frame_done is not None:
+                self.on_frame_done(self)
+
+    # --- hand-over between workers (coordinator) ------------------------------------------
+    def idle(self) -> bool:
+        return True
+
+    def get_state(self):
+        """Picklable state: the fusion core (pickled whole), wheel buffer, last fused stamp.
+        /ego_motion/path restarts after a restore (its history is not carried)."""
+        return {'fusion': self.fusion, 'wheel': list(self.wheel),
+                'last_released_ns': self.sync.last_released_ns}
+
+    def set_state(self, s):
+        self.fusion = s['fusion']
+        self.wheel = list(s['wheel'])
+        self.sync.last_released_ns = s['last_released_ns']
 
     def publish(self, fused, group, ms):
         stamp = ns_to_stamp(fused.stamp_ns)

@@ -55,6 +55,7 @@ class QuarterNode(Node):
         self.pending = deque()          # images waiting for the previous frame's fused pose
         self.last_processed_ns = None
         self.last_fused_ns = None
+        self.on_frame_done = None       # hook(node) after a fused pose was applied (snapshots)
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'pose', RELIABLE)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         self.create_subscription(Image, self.camera.image_topic, self.on_image, image_qos(p['image_qos']))
@@ -79,6 +80,12 @@ class QuarterNode(Node):
                                           (msg.width, msg.height))
 
     def on_image(self, msg: Image):
+        # A frame delivered twice (the player re-publishes the current frame after a worker
+        # restart, for the nodes that lost it) is processed once.
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        if (self.last_processed_ns is not None and stamp_ns <= self.last_processed_ns) \
+                or any(stamp_to_ns(m.header.stamp) == stamp_ns for _, m in self.pending):
+            return
         self.pending.append((time.monotonic(), msg))
         self.drain()
 
@@ -87,6 +94,8 @@ class QuarterNode(Node):
         self.last_fused_ns = fused.stamp_ns
         if self.estimator is not None:
             self.estimator.apply_fused_pose(fused.stamp_ns, fused.T_odom_base, fused.covariance)
+            if self.on_frame_done is not None:
+                self.on_frame_done(self)
         self.drain()
 
     # --- processing ---------------------------------------------------------------------
@@ -124,6 +133,28 @@ class QuarterNode(Node):
         self.pub_pose.publish(estimate_to_msg(est))
         level = 'ok' if est.state == 'tracking' else 'warn'
         self.publish_diag(msg.header.stamp, level, est.state, est)
+
+    # --- hand-over between workers (coordinator) ------------------------------------------
+    def idle(self) -> bool:
+        """Between frames: nothing pending and the last frame's fused pose applied."""
+        return not self.pending and (self.last_processed_ns is None or (
+            self.last_fused_ns is not None and self.last_fused_ns >= self.last_processed_ns))
+
+    def get_state(self):
+        """Picklable state (None before CameraInfo): the estimator's and this shell's."""
+        if self.estimator is None:
+            return None
+        return {'estimator': self.estimator.get_state(), 'intrinsics': self.intrinsics,
+                'image_size': self.estimator.image_size,
+                'last_processed_ns': self.last_processed_ns, 'last_fused_ns': self.last_fused_ns}
+
+    def set_state(self, s):
+        self.intrinsics = s['intrinsics']
+        self.estimator = QuarterEstimator(self.camera, self.quarter, self.intrinsics, self.params,
+                                          tuple(s['image_size']))
+        self.estimator.set_state(s['estimator'])
+        self.last_processed_ns = s['last_processed_ns']
+        self.last_fused_ns = s['last_fused_ns']
 
     def publish_diag(self, stamp, level, message, est=None):
         values = {}

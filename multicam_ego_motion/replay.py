@@ -7,7 +7,9 @@ DIR/odometry.tum, and when the bag has ground truth DIR/report.md with plots.
 import os
 import threading
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Dict
 
 from multicam_ego_motion.errors import UserError
 
@@ -29,6 +31,9 @@ def configure_parser(p):
     p.add_argument('--no-wheel', action='store_true', help='do not fuse /wheel/odom')
     p.add_argument('--start-offset', type=float, default=0.0, help='skip this much of the bag [s]')
     p.add_argument('--duration', type=float, help='play only this much of the bag [s]')
+    p.add_argument('--no-rebalance', action='store_true', help='keep the start allocation')
+    p.add_argument('--migrate-every', type=int, default=0, metavar='K',
+                   help='debug (lockstep): move one quarter node to the next worker every K frames')
 
 
 def resolve_rig(bag_reader, rig_arg):
@@ -60,29 +65,130 @@ def recorded_topics(rig):
     return topics
 
 
-def wait_for_graph(node, rig, bag_reader, launcher, timeout_s=60.0):
+def wait_for_graph(node, rig, bag_reader, coordinator, timeout_s=60.0):
     """Every quarter node subscribed to its present camera, and the general arbiter up."""
     deadline = time.monotonic() + timeout_s
     present = [c for c in rig.cameras if c.image_topic in bag_reader.topics]
     while time.monotonic() < deadline:
-        launcher.check_alive()
+        coordinator.check_alive()
         ok = all(node.count_subscribers(c.image_topic) >= 4 for c in present)
         ok = ok and node.count_publishers('/odom') >= 1
         if ok:
             return
         time.sleep(0.2)
-    raise UserError(f'the graph did not come up within {timeout_s:.0f} s (see {launcher.log_dir})')
+    raise UserError(f'the graph did not come up within {timeout_s:.0f} s (see {coordinator.log_dir})')
 
 
-def run(args) -> int:
+def peak_rss_kb(pids) -> int:
+    """Sum of the peak resident sets (VmHWM) of live processes."""
+    total = 0
+    for pid in pids:
+        try:
+            for line in Path(f'/proc/{pid}/status').read_text().splitlines():
+                if line.startswith('VmHWM:'):
+                    total += int(line.split()[1])
+        except (OSError, ValueError):
+            pass
+    return total
+
+
+@dataclass
+class GraphRun:
+    counts: dict
+    playback: object
+    wall_s: float
+    total_s: float
+    odom_received: Dict[int, float] = field(default_factory=dict)   # stamp -> monotonic s
+    peak_rss_kb: int = 0
+    coordinator: object = None
+
+
+def make_link_waiter(rig, player, timeout_s=2.0):
+    """For a moved quarter: wait until the player saw its image subscriber go, then come
+    back (a frame published in between would be lost for it)."""
+    baseline = {}
+
+    def wait(spec, phase):
+        if spec['kind'] != 'quarter':
+            return
+        topic = rig.camera(spec['parameters']['camera']).image_topic
+        if phase == 'before':
+            baseline[topic] = player.subscription_count(topic)
+            return
+        expected = baseline[topic]
+        ok = ((lambda: player.subscription_count(topic) < expected) if phase == 'detached'
+              else (lambda: player.subscription_count(topic) >= expected))
+        deadline = time.monotonic() + timeout_s
+        while not ok() and time.monotonic() < deadline:
+            time.sleep(0.002)
+    return wait
+
+
+def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rate=1.0,
+              use_wheel=True, ack_timeout=120.0, start_offset=0.0, duration=None,
+              migrate_every=0, rebalance=True, logger=print) -> GraphRun:
+    """Coordinator + in-process player and recorder: one run of the graph over a bag."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
-    from multicam_ego_motion import ros_domain
+    from multicam_ego_motion.bag.header_stamp import header_stamp_ns
     from multicam_ego_motion.bag.player import BagPlayer, PlayOptions
     from multicam_ego_motion.bag.recorder import BagRecorder
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
-    from multicam_ego_motion.coordinator.launcher import GraphLauncher
+    from multicam_ego_motion.coordinator.coordinator import Coordinator
+    from multicam_ego_motion.qos import RELIABLE
+    from nav_msgs.msg import Odometry
+
+    reader = Rosbag2Reader(bag)
+    coordinator = Coordinator(rig, Path(rig_file).resolve(), Path(params).resolve(), workers=workers,
+                              overrides=graph_overrides(lockstep, use_wheel), log_dir=out / 'logs',
+                              rebalance=rebalance, migrate_every=migrate_every, logger=logger)
+    rclpy.init()
+    node = rclpy.create_node('ego_motion_replay')
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    recorder = BagRecorder(out / 'output', topics=recorded_topics(rig))
+    received = {}
+    node.create_subscription(Odometry, '/odom', lambda data: received.setdefault(
+        header_stamp_ns(data), time.monotonic()), RELIABLE, raw=True)
+    t_start = time.monotonic()
+    result = None
+    peak = 0
+    wall = 0.0
+    try:
+        coordinator.start()
+        # Rate mode has no between-frames moment: rebalancing runs on a timer there.
+        coordinator.attach_ros(node, rate_mode_period_s=None if lockstep else 1.0)
+        spinner.start()
+        recorder.attach(node)
+        wait_for_graph(node, rig, reader, coordinator)
+        recorder.wait_for_topics(10.0)
+        player = BagPlayer(bag, PlayOptions(
+            lockstep=lockstep, rate=rate, ack_topic='/odom',
+            ack_timeout_s=ack_timeout, discovery_s=0.5, progress=None,
+            start_offset_s=start_offset, duration_s=duration,
+            between_frames=coordinator.between_frames if lockstep else None))
+        coordinator.link_waiter = make_link_waiter(rig, player)
+        coordinator.on_restored.append(lambda w: player.request_republish())
+        t_play = time.monotonic()
+        result = player.play(node)
+        wall = time.monotonic() - t_play
+        time.sleep(0.5 if lockstep else 1.0)  # let the last estimates reach the recorder
+        coordinator.check_alive()
+        peak = peak_rss_kb(coordinator.worker_pids() + [os.getpid()])
+    finally:
+        counts = recorder.close()
+        coordinator.stop()
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return GraphRun(counts, result, wall, time.monotonic() - t_start, received, peak, coordinator)
+
+
+def run(args) -> int:
+    from multicam_ego_motion import ros_domain
+    from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
     from multicam_ego_motion.replay_summary import summarize
 
     ros_domain.isolate()
@@ -102,44 +208,23 @@ def run(args) -> int:
     if not params.exists():
         raise UserError(f'params file not found: {params}')
     lockstep = args.rate is None
+    if args.migrate_every and not lockstep:
+        raise UserError('--migrate-every needs lockstep replay')
     print(f'replay: {args.bag} ({", ".join(rig.names)}; '
           f'{"lockstep" if lockstep else f"rate {args.rate}"}; {args.workers} workers; '
           f'ROS_DOMAIN_ID={os.environ["ROS_DOMAIN_ID"]})', flush=True)
     if missing:
         print(f'replay: cameras without topics in the bag (the graph runs on the others): '
               f'{", ".join(missing)}', flush=True)
-
-    launcher = GraphLauncher(rig, rig_file.resolve(), params.resolve(), workers=args.workers,
-                             overrides=graph_overrides(lockstep, not args.no_wheel),
-                             log_dir=out / 'logs')
-    rclpy.init()
-    node = rclpy.create_node('ego_motion_replay')
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    recorder = BagRecorder(out / 'output', topics=recorded_topics(rig))
-    t_start = time.monotonic()
-    result = None
-    try:
-        launcher.start()
-        spinner.start()
-        recorder.attach(node)
-        wait_for_graph(node, rig, reader, launcher)
-        recorder.wait_for_topics(10.0)
-        player = BagPlayer(args.bag, PlayOptions(
-            lockstep=lockstep, rate=args.rate or 1.0, ack_topic='/odom',
-            ack_timeout_s=args.ack_timeout, discovery_s=0.5, progress=None,
-            start_offset_s=args.start_offset, duration_s=args.duration))
-        t_play = time.monotonic()
-        result = player.play(node)
-        wall = time.monotonic() - t_play
-        time.sleep(0.5 if lockstep else 1.0)  # let the last estimates reach the recorder
-        launcher.check_alive()
-    finally:
-        counts = recorder.close()
-        launcher.stop()
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return summarize(args.bag, reader, out, counts, result, wall, time.monotonic() - t_start,
+    g = run_graph(args.bag, out, rig, rig_file, params, args.workers, lockstep=lockstep,
+                  rate=args.rate or 1.0, use_wheel=not args.no_wheel, ack_timeout=args.ack_timeout,
+                  start_offset=args.start_offset, duration=args.duration,
+                  migrate_every=args.migrate_every, rebalance=not args.no_rebalance,
+                  logger=lambda t: print(t, flush=True))
+    st = g.coordinator.stats
+    print(f'coordinator: {st.migrations} migrations ({st.rebalances} rebalances), '
+          f'{st.restarts} worker restarts'
+          + (f' (restored in {", ".join(f"{t:.2f}" for t in st.restore_s)} s)' if st.restore_s else '')
+          + (f', frames re-published {g.playback.republished}' if g.playback else ''), flush=True)
+    return summarize(args.bag, reader, out, g.counts, g.playback, g.wall_s, g.total_s,
                      args.ground_truth_topic)

@@ -49,13 +49,14 @@ import threading
 import time
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
-from typing import Dict, Iterable, Iterator, List, Optional
+from typing import Callable, Dict, Iterable, Iterator, List, Optional
 
 from multicam_ego_motion.bag.rosbag2_reader import BagMessage, Rosbag2Reader
 from multicam_ego_motion.errors import UserError
 
 DEFAULT_LOCKSTEP_PATTERN = '*/image_raw'
 NS_PER_S = 1_000_000_000
+REPUBLISH_PERIOD_S = 0.5
 
 
 @dataclass
@@ -73,6 +74,9 @@ class PlayOptions:
     progress: Optional[bool] = None               # None: only when stderr is a terminal
     discovery_s: float = 1.0          # listen to the graph this long before the first frame
     discovery_timeout_s: float = 5.0  # then wait at most this long for subscribers to match
+    # lockstep: called with the frame index after each acknowledged trigger frame, before the
+    # next one is published (the coordinator moves nodes there)
+    between_frames: Optional[Callable[[int], None]] = None
 
 
 @dataclass
@@ -93,6 +97,8 @@ class PlaybackResult:
     messages: int = 0
     per_topic: Dict[str, int] = field(default_factory=dict)  # published topic -> count
     wall_time_s: float = 0.0
+    published_at: Dict[int, float] = field(default_factory=dict)  # trigger stamp -> monotonic s
+    republished: int = 0              # frames published again after a graph restart
 
 
 def parse_remaps(items: Iterable[str]) -> Dict[str, str]:
@@ -161,6 +167,19 @@ class BagPlayer:
         self._ack_count = 0
         self._ack_stamp_ns = None
         self._ack_stamped = False
+        self._republish = threading.Event()
+        self._publishers = {}
+
+    def request_republish(self):
+        """Lockstep: publish the frame being waited for again (thread-safe), and keep doing so
+        every REPUBLISH_PERIOD_S until it is acknowledged. A restarted worker's nodes lost the
+        frame; the nodes that have it ignore a copy (same stamp)."""
+        self._republish.set()
+
+    def subscription_count(self, topic: str) -> int:
+        """Subscribers matched to the player's publisher of a (published) topic."""
+        pub = self._publishers.get(topic)
+        return pub.get_subscription_count() if pub is not None else 0
 
     def _trigger_topics(self):
         opts = self.options
@@ -222,6 +241,7 @@ class BagPlayer:
                                         publishing_qos(name))
             entities.append(('pub', pub))
             publishers[topic] = pub
+            self._publishers[name] = pub
         clock_pub = None
         if opts.clock:
             clock_pub = node.create_publisher(Clock, '/clock', publishing_qos('/clock', depth=10))
@@ -250,10 +270,15 @@ class BagPlayer:
                 for msg in frame.messages:
                     publishers[msg.topic].publish(bytes(msg.data))
                     result.per_topic[self.published_name[msg.topic]] += 1
+                if frame.is_trigger or not opts.lockstep:
+                    result.published_at.setdefault(frame.stamp_ns if frame.is_trigger else frame.log_time_ns,
+                                                   time.monotonic())
                 result.messages += len(frame.messages)
                 result.frames += 1
                 if opts.lockstep and frame.is_trigger:
-                    self._await_ack(frame, acks_before)
+                    result.republished += self._await_ack(frame, acks_before, publishers)
+                    if opts.between_frames is not None:
+                        opts.between_frames(frame.index)
                 now_s = (frame.log_time_ns - self.start_ns) / NS_PER_S
                 bar.update(now_s - done_s)
                 done_s = now_s
@@ -309,7 +334,8 @@ class BagPlayer:
         if not self._wait(all_matched, opts.discovery_timeout_s):
             node.get_logger().warning('not every subscriber matched before playback started')
 
-    def _await_ack(self, frame: Frame, acks_before: int):
+    def _await_ack(self, frame: Frame, acks_before: int, publishers=None) -> int:
+        """Wait for the acknowledgement; returns how often the frame was published again."""
         opts = self.options
 
         def acknowledged():
@@ -317,12 +343,27 @@ class BagPlayer:
                 return self._ack_stamp_ns is not None and self._ack_stamp_ns >= frame.stamp_ns
             return self._ack_count > acks_before  # ack type without a header
 
-        if not self._wait(acknowledged, opts.ack_timeout_s):
-            topics = sorted({m.topic for m in frame.messages if m.topic in self.trigger_topics})
-            raise UserError(
-                f'lockstep: frame {frame.index} (stamp {frame.stamp_ns / NS_PER_S:.9f} s, '
-                f'{", ".join(topics)}) was not acknowledged on {opts.ack_topic} within '
-                f'{opts.ack_timeout_s:g} s')
+        def acknowledged_or_restart():
+            return acknowledged() or self._republish.is_set()
+
+        deadline = time.monotonic() + opts.ack_timeout_s
+        republished = 0
+        while self._wait(acknowledged_or_restart, deadline - time.monotonic()):
+            if acknowledged():
+                return republished
+            # A worker was restarted: again, until the frame is acknowledged (a copy sent
+            # before the restored nodes were matched is lost for them).
+            for msg in frame.messages:
+                publishers[msg.topic].publish(bytes(msg.data))
+            republished += 1
+            if self._wait(acknowledged, REPUBLISH_PERIOD_S):
+                self._republish.clear()
+                return republished
+        topics = sorted({m.topic for m in frame.messages if m.topic in self.trigger_topics})
+        raise UserError(
+            f'lockstep: frame {frame.index} (stamp {frame.stamp_ns / NS_PER_S:.9f} s, '
+            f'{", ".join(topics)}) was not acknowledged on {opts.ack_topic} within '
+            f'{opts.ack_timeout_s:g} s')
 
     def _wait(self, predicate, timeout_s: float) -> bool:
         """Spin (own executor) or sleep (someone else spins) until predicate() or timeout."""

@@ -1,23 +1,36 @@
-"""A worker process (a "processor" of the paper): hosts a set of graph nodes in one executor.
+"""A worker process (a "processor" of the paper): hosts graph nodes in one executor and obeys
+the coordinator over its control channel.
 
-Started by the coordinator with a JSON spec: `python -m multicam_ego_motion.coordinator.worker
---spec FILE`. It dies with its parent (PR_SET_PDEATHSIG, and a parent-pid check as a second
-guard), so a killed coordinator leaves no orphans.
+Started by the coordinator: `python -m multicam_ego_motion.coordinator.worker --index I
+--control ADDRESS [--params-file F]`, the channel's auth key in $EGO_MOTION_CONTROL_KEY. It
+connects back, says hello, then serves the commands of control.py: attach a node (with the
+state it carries on), detach a node (returning its state), stop. After every frame a stateful
+node (quarter, general arbiter) sends its state to the coordinator as a snapshot, which is
+what a restarted worker is restored from.
+
+Dies with its parent: PR_SET_PDEATHSIG, and the end of the control channel (a coordinator
+that is gone closes it) both end the process, so no worker outlives its coordinator.
 """
 import argparse
 import ctypes
-import json
 import os
+import pickle
+import queue
 import signal
 import sys
+import threading
+import time
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
+from multicam_ego_motion.coordinator import control
 from multicam_ego_motion.errors import UserError
 
 PR_SET_PDEATHSIG = 1
+LINK_TIMEOUT_S = 2.0       # longest wait for a moved node's topics to be matched
+DETACH_IDLE_TIMEOUT_S = 2.0
 
 
 def _die_with_parent():
@@ -47,41 +60,148 @@ def create_node(spec: dict, params_file: str = None):
                                     cli_args=cli_args)
 
 
+def linked(node) -> bool:
+    """Every input has a publisher and every estimate output a subscriber: a moved node must
+    not miss the next frame because discovery was still under way."""
+    subs_ok = all(s.get_publisher_count() > 0 for s in node.subscriptions
+                  if not s.topic_name.endswith('/wheel/odom'))   # wheel odometry is optional
+    pubs_ok = all(p.get_subscription_count() > 0 for p in node.publishers
+                  if p.topic_name.endswith('/pose') or p.topic_name == '/ego_motion/fused_pose')
+    return subs_ok and pubs_ok
+
+
+class Worker:
+    def __init__(self, index: int, conn, params_file):
+        self.index = index
+        self.conn = conn
+        self.params_file = params_file
+        self.send_lock = threading.Lock()
+        self.inbox = queue.Queue()
+        self.deferred = []              # (predicate, action, deadline): waits off the executor
+        self.hosted = {}                # key -> node
+        self.node = rclpy.create_node(f'ego_motion_worker_{index}' if index >= 0 else f'ego_motion_worker_spare_{os.getpid()}')
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        # The reader thread only queues; nodes are created and destroyed in the executor.
+        self.wake = self.node.create_guard_condition(self.serve)
+        self.ticker = self.node.create_timer(0.005, self.poll_deferred)
+        self.ticker.cancel()            # runs only while something is deferred
+
+    def send(self, msg):
+        with self.send_lock:
+            self.conn.send(msg)
+
+    def read_commands(self):
+        try:
+            while True:
+                self.inbox.put(self.conn.recv())
+                self.wake.trigger()
+        except (EOFError, OSError):
+            self.inbox.put((control.STOP,))     # coordinator gone: end with it
+            self.wake.trigger()
+
+    def serve(self):
+        while True:
+            try:
+                cmd = self.inbox.get_nowait()
+            except queue.Empty:
+                return
+            if cmd[0] == control.STOP:
+                raise SystemExit(0)
+            if cmd[0] == control.ATTACH:
+                self.attach(*cmd[1:])
+            elif cmd[0] == control.DETACH:
+                self.detach(*cmd[1:])
+
+    def defer(self, predicate, action, timeout_s):
+        self.deferred.append((predicate, action, time.monotonic() + timeout_s))
+        self.ticker.reset()
+        self.poll_deferred()
+
+    def poll_deferred(self):
+        now = time.monotonic()
+        for item in list(self.deferred):
+            predicate, action, deadline = item
+            if predicate() or now > deadline:
+                self.deferred.remove(item)
+                action(now <= deadline)
+        if not self.deferred:
+            self.ticker.cancel()
+
+    def snapshot(self, key, node):
+        self.send((control.SNAPSHOT, key, pickle.dumps(node.get_state(), protocol=pickle.HIGHEST_PROTOCOL)))
+
+    def attach(self, req, spec, state_bytes, wait_links=False):
+        key = spec['key']
+        try:
+            node = create_node(spec, self.params_file)
+            if state_bytes is not None and hasattr(node, 'set_state'):
+                state = pickle.loads(state_bytes)
+                if state is not None:
+                    node.set_state(state)
+        except Exception as e:      # reported to the coordinator, which fails the run
+            self.send((control.REPLY, req, {'ok': False, 'error': f'{key}: {type(e).__name__}: {e}'}))
+            return
+        if hasattr(node, 'get_state'):
+            node.on_frame_done = lambda n, key=key: self.snapshot(key, n)
+        self.hosted[key] = node
+        self.executor.add_node(node)
+
+        if not wait_links:          # start-up and restore: nothing to match yet / frame re-sent
+            self.send((control.REPLY, req, {'ok': True}))
+            return
+
+        def done(in_time):
+            time.sleep(0.05)        # the other side of each match (writer vs reader) catches up
+            self.send((control.REPLY, req, {'ok': True, 'linked': in_time}))
+        self.defer(lambda: linked(node), done, LINK_TIMEOUT_S)
+
+    def detach(self, req, key):
+        node = self.hosted.get(key)
+        if node is None:
+            self.send((control.REPLY, req, {'ok': False, 'error': f'{key} is not hosted here'}))
+            return
+
+        def done(idle):
+            state = node.get_state() if hasattr(node, 'get_state') else None
+            self.executor.remove_node(node)
+            node.destroy_node()
+            del self.hosted[key]
+            self.send((control.REPLY, req, {'ok': True, 'idle': idle,
+                                            'state': pickle.dumps(state, protocol=pickle.HIGHEST_PROTOCOL)}))
+        # Between frames only: the state must include the last frame's fused pose.
+        self.defer(getattr(node, 'idle', lambda: True), done, DETACH_IDLE_TIMEOUT_S)
+
+    def spin(self):
+        threading.Thread(target=self.read_commands, daemon=True).start()
+        self.send((control.HELLO, self.index, os.getpid()))
+        try:
+            self.executor.spin()
+        finally:
+            for node in self.hosted.values():
+                node.destroy_node()
+            self.node.destroy_node()
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--spec', required=True, help='JSON: {"worker": i, "params_file": ..., "nodes": [...]}')
+    ap.add_argument('--index', type=int, required=True, help='worker index; -1: a hot spare')
+    ap.add_argument('--control', required=True, help='address of the coordinator\'s control channel')
+    ap.add_argument('--params-file')
     args = ap.parse_args(argv)
     _die_with_parent()
-    parent = os.getppid()
-    with open(args.spec) as f:
-        spec = json.load(f)
-    rclpy.init()
-    executor = SingleThreadedExecutor()
-    nodes = []
-    try:
-        for n in spec['nodes']:
-            node = create_node(n, spec.get('params_file'))
-            nodes.append(node)
-            executor.add_node(node)
-    except UserError as e:
-        print(f'worker {spec.get("worker")}: error: {e}', file=sys.stderr, flush=True)
-        rclpy.try_shutdown()
-        return 2
-    if nodes:
-        def check_parent():
-            if os.getppid() != parent:
-                raise SystemExit(0)
-        nodes[0].create_timer(0.5, check_parent)
-        nodes[0].get_logger().info(
-            f'worker {spec.get("worker")} (pid {os.getpid()}) hosts {", ".join(n["key"] for n in spec["nodes"])}')
+    # Import the node modules before saying hello: a spare that takes over a dead worker
+    # then only creates nodes (restore within 2 s even on a loaded machine).
+    for kind in ('quarter', 'camera_arbiter', 'general_arbiter'):
+        node_class(kind)
+    conn = control.connect(args.control)
     signal.signal(signal.SIGTERM, lambda *a: (_ for _ in ()).throw(SystemExit(0)))
+    rclpy.init()
     try:
-        executor.spin()
+        Worker(args.index, conn, args.params_file).spin()
     except (KeyboardInterrupt, SystemExit, ExternalShutdownException):
         pass
     finally:
-        for node in nodes:
-            node.destroy_node()
         rclpy.try_shutdown()
     return 0
 

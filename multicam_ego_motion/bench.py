@@ -1,0 +1,180 @@
+"""`ego-motion bench BAG --out DIR`: one timing table from one run of each configuration.
+
+Sequential baseline (run_sequential: same cores, one process, no ROS transport), the graph in
+lockstep at M = 1 and M = 2 workers (wall time per frame, speedup, efficiency, improvement
+(Ts - Tpar) / Ts), the graph in rate mode at the bag's rate on M = 2 (real-time factor,
+latency from the player publishing a frame to /odom arriving, dropped frames, peak memory),
+and the paper's model (parallel_time_model) fed with the median stage times measured in the
+M = 2 lockstep run, next to the paper's Fig. 6(d). Measured, not asserted.
+Writes DIR/bench.md and DIR/model.png.
+"""
+import os
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from multicam_ego_motion.errors import UserError
+
+MODEL_WORKERS = (2, 4, 6, 8, 10, 14, 16, 24, 48)
+
+
+def configure_parser(p):
+    p.add_argument('bag', help='rosbag2 MCAP bag (folder)')
+    p.add_argument('--out', required=True, help='output folder (bench.md, model.png, the runs)')
+    p.add_argument('--duration', type=float, help='use only this much of the bag [s]')
+    p.add_argument('--params', help='ROS params file (default: the package\'s config/params.yaml)')
+
+
+def quarter_params_from(params_file):
+    from camera_pose_nodes.quarter_estimator import QuarterParams
+    with open(params_file) as f:
+        doc = yaml.safe_load(f) or {}
+    names = set(QuarterParams.__dataclass_fields__)
+    out = {}
+    for section, body in doc.items():
+        if section.endswith('quarter_node'):
+            out.update({k: v for k, v in (body or {}).get('ros__parameters', {}).items() if k in names})
+    return out
+
+
+def stage_medians(output_bag, cameras):
+    """Median stage times per quarter, camera arbiter and general arbiter from /diagnostics."""
+    from rosbags.highlevel import AnyReader
+    from multicam_ego_motion.coordinator.parallel_time_model import STAGES
+    per = {}
+    with AnyReader([Path(output_bag)]) as reader:
+        conns = [c for c in reader.connections if c.topic == '/diagnostics']
+        for c, _, raw in reader.messages(connections=conns):
+            for st in reader.deserialize(raw, c.msgtype).status:
+                vals = {kv.key: kv.value for kv in st.values}
+                for k, v in vals.items():
+                    if k.endswith('_ms'):
+                        per.setdefault((st.name, k), []).append(float(v))
+
+    def med(name, key):
+        xs = per.get((name, key))
+        return statistics.median(xs) if xs else 0.0
+    stage_ms = {cam: [{s: med(f'ego_motion/{cam}/q{l}', f'{s}_ms') for s in STAGES} for l in range(1, 5)]
+                for cam in cameras}
+    arbiter_ms = {cam: med(f'ego_motion/{cam}/arbiter', 'arbiter_ms') for cam in cameras}
+    return stage_ms, arbiter_ms, med('ego_motion/general_arbiter', 'arbiter_ms')
+
+
+def _graph(bag, out, rig, rig_file, params, workers, lockstep, duration):
+    from multicam_ego_motion.replay import run_graph
+    print(f'bench: graph, M = {workers}, {"lockstep" if lockstep else "rate 1.0"} ...', flush=True)
+    g = run_graph(bag, out, rig, rig_file, params, workers, lockstep=lockstep, rate=1.0,
+                  duration=duration, rebalance=False, logger=None)
+    frames = len(g.playback.published_at)
+    return g, frames, g.wall_s / max(frames, 1)
+
+
+def run(args) -> int:
+    from multicam_ego_motion import ros_domain
+    from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
+    from multicam_ego_motion.coordinator.parallel_time_model import PAPER_IMPROVEMENT_PCT, table
+    from multicam_ego_motion.replay import DEFAULT_PARAMS, resolve_rig
+    from multicam_ego_motion.sequential_pipeline import run_sequential
+
+    ros_domain.isolate()
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()):
+        raise UserError(f'output folder {out} is not empty')
+    out.mkdir(parents=True, exist_ok=True)
+    reader = Rosbag2Reader(args.bag)
+    rig, rig_file = resolve_rig(reader, None)
+    if rig_file is None:
+        rig_file = out / 'rig.yaml'
+        rig.save(rig_file)
+    params = Path(args.params) if args.params else DEFAULT_PARAMS
+    t_bench = time.monotonic()
+
+    # 1. sequential baseline, same window as the graph runs
+    from multicam_ego_motion.bag.player import BagPlayer, PlayOptions
+    window = [f for f in BagPlayer(args.bag, PlayOptions(lockstep=True, duration_s=args.duration)).frames()
+              if f.is_trigger]
+    n_frames = len(window)
+    bag_s = (window[-1].log_time_ns - window[0].log_time_ns) / 1e9 + (
+        (window[1].log_time_ns - window[0].log_time_ns) / 1e9 if n_frames > 1 else 0.0)
+    print(f'bench: sequential baseline ({n_frames} frames) ...', flush=True)
+    t0 = time.perf_counter()
+    seq = run_sequential(args.bag, rig, quarter_params_from(params), max_frames=n_frames)
+    Ts = (time.perf_counter() - t0) / max(len(seq.fused), 1) * 1e3
+
+    # 2. the graph, lockstep M = 1, 2; 3. rate mode M = 2
+    rows = [('sequential (1 process, no ROS)', Ts, 1, None)]
+    g2 = None
+    for M in (1, 2):
+        g, frames, per = _graph(args.bag, out / f'lockstep_m{M}', rig, rig_file, params, M, True, args.duration)
+        rows.append((f'graph, lockstep, M = {M}', per * 1e3, M, frames))
+        if M == 2:
+            g2 = g
+    gr, frames_r, _ = _graph(args.bag, out / 'rate_m2', rig, rig_file, params, 2, False, args.duration)
+    lat = [(gr.odom_received[s] - t) * 1e3 for s, t in gr.playback.published_at.items() if s in gr.odom_received]
+    dropped = frames_r - len(lat)
+    rtf = bag_s / gr.wall_s if gr.wall_s > 0 else float('nan')
+
+    lines = [f'# ego-motion bench: {args.bag}, {n_frames} frames ({bag_s:.1f} s of bag), '
+             f'{os.cpu_count()} CPUs', '',
+             '| configuration | wall per frame [ms] | speedup vs sequential | efficiency | improvement [%] |',
+             '|---|---:|---:|---:|---:|']
+    for name, ms, M, _ in rows:
+        sp = Ts / ms
+        lines.append(f'| {name} | {ms:.1f} | {sp:.2f} | {sp / M:.2f} | {100 * (Ts - ms) / Ts:.1f} |')
+    lines += ['', '| rate mode, M = 2, bag rate | value |', '|---|---:|',
+              f'| real-time factor (bag s / wall s) | {rtf:.2f} |',
+              f'| latency image -> /odom p50 [ms] | {np.percentile(lat, 50):.1f} |' if lat else '| latency | n/a |',
+              f'| latency image -> /odom p99 [ms] | {np.percentile(lat, 99):.1f} |' if lat else '',
+              f'| dropped frames (no /odom) | {dropped} of {frames_r} |',
+              f'| peak memory, workers + coordinator [MB] | {gr.peak_rss_kb / 1024:.0f} |']
+    g1_ms, g2_ms = rows[1][1], rows[2][1]
+    lines += ['', 'Targets: speedup at M = 2 >= 1.8: '
+              f'{Ts / g2_ms:.2f} ({"met" if Ts / g2_ms >= 1.8 else "missed"}); graph at M = 1 <= 1.25 x '
+              f'sequential: {g1_ms / Ts:.2f} x ({"met" if g1_ms / Ts <= 1.25 else "missed"}); real time with '
+              f'p99 latency <= 100 ms: RTF {rtf:.2f}, p99 '
+              f'{np.percentile(lat, 99) if lat else float("nan"):.0f} ms '
+              f'({"met" if lat and rtf >= 0.98 and np.percentile(lat, 99) <= 100 and dropped == 0 else "missed"})']
+
+    # 4. the model, fed with the measured stage times (M = 2 lockstep run)
+    stage_ms, arb_ms, ga_ms = stage_medians(out / 'lockstep_m2' / 'output', rig.names)
+    model = table(stage_ms, MODEL_WORKERS, arbiter_ms=arb_ms, general_arbiter_ms=ga_ms)
+    lines += ['', 'Model (paper eq. 1-4) fed with the median stage times measured at M = 2 '
+              '(no communication cost):', '',
+              '| M | predicted T_par [ms] | speedup | efficiency | improvement [%] | paper Fig. 6(d) [%] |',
+              '|---:|---:|---:|---:|---:|---:|']
+    for r in model:
+        lines.append(f'| {r["M"]} | {r["T_par_ms"]:.1f} | {r["speedup"]:.2f} | {r["efficiency"]:.2f} | '
+                     f'{r["improvement_pct"]:.1f} | {PAPER_IMPROVEMENT_PCT.get(r["M"], float("nan")):.1f} |')
+    stage_tot = {s: sum(q[s] for qs in stage_ms.values() for q in qs) for s in stage_ms[rig.names[0]][0]}
+    lines += ['', 'Measured medians summed over the 16 quarters [ms]: '
+              + ', '.join(f'{k} {v:.1f}' for k, v in stage_tot.items())
+              + f'; camera arbiters {sum(arb_ms.values()):.1f}; general arbiter {ga_ms:.1f}',
+              f'Bench time: {time.monotonic() - t_bench:.0f} s']
+    text = '\n'.join(l for l in lines if l is not None)
+    print(text)
+    (out / 'bench.md').write_text(text + '\n')
+    _plot(model, Ts, g2_ms, out / 'model.png')
+    return 0
+
+
+def _plot(model, Ts, g2_ms, path):
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    from multicam_ego_motion.coordinator.parallel_time_model import PAPER_IMPROVEMENT_PCT
+    fig, ax = plt.subplots(figsize=(6, 4))
+    Ms = [r['M'] for r in model]
+    ax.plot(Ms, [r['improvement_pct'] for r in model], 'o-', label='model, measured stage times')
+    ax.plot(list(PAPER_IMPROVEMENT_PCT), list(PAPER_IMPROVEMENT_PCT.values()), 's--', label='paper Fig. 6(d)')
+    ax.plot([2], [100 * (Ts - g2_ms) / Ts], 'r*', markersize=12, label='measured graph, M = 2')
+    ax.set_xscale('log', base=2)
+    ax.set_xlabel('workers M')
+    ax.set_ylabel('improvement (Ts - Tpar) / Ts [%]')
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

@@ -1,0 +1,451 @@
+"""The coordinator: launches the graph on M worker processes and keeps it running.
+
+* Placement: allocation.allocate() (paper section 3) on the measured quarter costs; before
+  anything is measured every quarter costs the same.
+* Control channel (control.py): one Unix-socket connection per worker; attach / detach nodes,
+  state snapshots after every frame of every stateful node.
+* Rebalancing: costs from the quarters' /diagnostics (cost_monitor.py), allocation.
+  should_rebalance() with threshold and hysteresis; a move = detach on the source worker
+  (which waits until the node is between frames and returns its state), attach on the
+  destination with that state. Only quarter nodes and camera arbiters move; the general
+  arbiter stays where it started (moving it would re-route /odom under the player's feet
+  for no gain: it costs about 1 % of a frame).
+* Crash recovery: a worker whose channel closes is restarted under the same index and its
+  nodes are attached again with their last snapshots; `on_restored` callbacks then tell the
+  frame source (the lockstep player) to publish the current frame again.
+* Diagnostics: with a ROS node given (`attach_ros`), it reads /diagnostics and publishes its
+  own entry 'ego_motion/coordinator' (allocation, imbalance, migrations, restarts).
+
+Worker processes are spawned only from the thread that created the coordinator and from
+its watchdog thread, both alive as long as the coordinator: PR_SET_PDEATHSIG fires when the
+spawning *thread* ends.
+"""
+import itertools
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Dict, List, Optional
+
+from multicam_ego_motion.coordinator import control
+from multicam_ego_motion.coordinator.allocation import Allocation, allocate, evaluate_loads, should_rebalance
+from multicam_ego_motion.coordinator.cost_monitor import CostMonitor
+from multicam_ego_motion.coordinator.graph_spec import graph_nodes
+from multicam_ego_motion.errors import UserError
+
+START_TIMEOUT_S = 60.0
+REPLY_TIMEOUT_S = 30.0
+WORKER_MODULE = 'multicam_ego_motion.coordinator.worker'
+
+
+@dataclass
+class WorkerHandle:
+    index: int
+    proc: subprocess.Popen = None
+    log: object = None
+    conn: object = None
+    pid: int = None
+    ready: threading.Event = field(default_factory=threading.Event)
+    alive: bool = False
+    send_lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+@dataclass
+class CoordinatorStats:
+    migrations: int = 0
+    restarts: int = 0
+    rebalances: int = 0
+    restore_s: List[float] = field(default_factory=list)   # worker death -> nodes attached
+    log: List[str] = field(default_factory=list)
+
+
+class Coordinator:
+    def __init__(self, rig, rig_file, params_file=None, workers: int = None, overrides=None,
+                 log_dir=None, env=None, rebalance: bool = True, threshold: float = 0.15,
+                 hysteresis_frames: int = 10, migrate_every: int = 0, spare: bool = True,
+                 logger=print):
+        self.rig = rig
+        self.specs = {n.key: n for n in graph_nodes(rig, str(rig_file), overrides=overrides)}
+        self.n_workers = max(1, int(workers or os.cpu_count() or 1))
+        self.params_file = str(params_file) if params_file else None
+        self.log_dir = Path(log_dir or tempfile.mkdtemp(prefix='ego_motion_workers_'))
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        # One BLAS thread per worker: the workers are the parallelism (see cli.py).
+        self.env = dict(env if env is not None else os.environ)
+        for var in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
+            self.env.setdefault(var, '1')
+        self.rebalance_enabled = rebalance and self.n_workers > 1
+        self.threshold = threshold
+        self.hysteresis_frames = hysteresis_frames
+        self.migrate_every = int(migrate_every) if self.n_workers > 1 else 0
+        self.logger = logger
+        self.costs = CostMonitor(rig.names)
+        self.stats = CoordinatorStats()
+        self.snapshots: Dict[str, bytes] = {}
+        self.placement: Dict[str, int] = {}        # node key -> worker index
+        self.allocation: Optional[Allocation] = None
+        self.on_restored: List[Callable[[int], None]] = []
+        self.link_waiter: Optional[Callable[[dict, str], None]] = None   # see migrate()
+        self.workers = [WorkerHandle(i) for i in range(self.n_workers)]
+        # A hot spare (started, imports done, no nodes) takes over a dead worker: a cold
+        # start of Python + rclpy + the node modules takes seconds on a loaded machine.
+        self.spare = spare
+        self._spare: Optional[WorkerHandle] = None
+        self._replies: Dict[int, dict] = {}
+        self._reply_cond = threading.Condition()
+        self._req = itertools.count(1)
+        self._ops = threading.RLock()              # one placement change at a time
+        self._dead = []
+        self._dead_cond = threading.Condition()
+        self._stopping = False
+        self._last_rebalance_frame = -10 ** 9
+        self._forced = 0
+        self._listener = None
+        self._ros_node = None
+
+    # ---- start / stop ---------------------------------------------------------------------
+    def start(self):
+        self._listener, key_env = control.listen(tempfile.gettempdir())
+        self.env.update(key_env)
+        threading.Thread(target=self._accept_loop, daemon=True, name='coordinator-accept').start()
+        self.allocation = allocate(self.costs.quarter_costs(), self.n_workers)
+        for w, keys in self.allocation.workers.items():
+            for k in keys:
+                self.placement[k] = w
+        self.say(f'allocation ({self.allocation.case}): ' + '; '.join(
+            f'worker {w}: {", ".join(keys)}' for w, keys in self.allocation.workers.items()))
+        for h in self.workers:
+            self._spawn(h)
+        for h in self.workers:
+            self._wait_ready(h)
+            self._attach_all(h)
+        if self.spare:
+            self._spare = WorkerHandle(-1)
+            self._spawn(self._spare)
+        self._watchdog = threading.Thread(target=self._watch, daemon=True, name='coordinator-watchdog')
+        self._watchdog.start()
+        return self
+
+    def stop(self, timeout=10.0):
+        self._stopping = True
+        with self._dead_cond:
+            self._dead_cond.notify_all()
+        handles = self.workers + ([self._spare] if self._spare is not None else [])
+        for h in handles:
+            self._send(h, (control.STOP,))
+        deadline = time.monotonic() + timeout
+        for h in handles:
+            if h.proc is None:
+                continue
+            try:
+                h.proc.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                h.proc.kill()
+                h.proc.wait()
+            if h.log:
+                h.log.close()
+        if self._listener is not None:
+            address = self._listener.address
+            self._listener.close()
+            if os.path.exists(address):
+                os.unlink(address)
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.stop()
+
+    def say(self, text):
+        self.stats.log.append(text)
+        if self.logger:
+            self.logger(f'coordinator: {text}')
+
+    def check_alive(self):
+        """Raise if a worker failed in a way a restart cannot fix (e.g. a bad parameter)."""
+        if getattr(self, '_fatal', None):
+            raise UserError(self._fatal)
+
+    def worker_pids(self) -> List[int]:
+        handles = self.workers + ([self._spare] if self._spare is not None else [])
+        return [h.proc.pid for h in handles if h.proc is not None and h.proc.poll() is None]
+
+    def nodes_of(self, worker: int) -> List[str]:
+        return [k for k, w in self.placement.items() if w == worker]
+
+    # ---- processes and channel -----------------------------------------------------------
+    def _spawn(self, h: WorkerHandle):
+        h.ready.clear()
+        h.alive = False
+        if h.log:
+            h.log.close()
+        h.log = open(self.log_dir / (f'worker_{h.index}.log' if h.index >= 0 else 'worker_spare.log'), 'a')
+        cmd = [sys.executable, '-m', WORKER_MODULE, '--index', str(h.index),
+               '--control', self._listener.address]
+        if self.params_file:
+            cmd += ['--params-file', self.params_file]
+        h.proc = subprocess.Popen(cmd, stdout=h.log, stderr=subprocess.STDOUT, env=self.env)
+
+    def _wait_ready(self, h: WorkerHandle):
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while not h.ready.wait(0.1):
+            if h.proc.poll() is not None or time.monotonic() > deadline:
+                raise UserError(f'worker {h.index} did not start (exit code {h.proc.poll()}): '
+                                f'{self._log_tail(h)}')
+
+    def _log_tail(self, h):
+        lines = (self.log_dir / (f'worker_{h.index}.log' if h.index >= 0 else 'worker_spare.log')).read_text().strip().splitlines()
+        return lines[-1] if lines else 'no output'
+
+    def _accept_loop(self):
+        while not self._stopping:
+            try:
+                conn = self._listener.accept()
+                hello = conn.recv()
+            except (OSError, EOFError):
+                if self._stopping:
+                    return
+                continue
+            if hello[0] != control.HELLO or not -1 <= hello[1] < len(self.workers):
+                conn.close()
+                continue
+            h = self.workers[hello[1]] if hello[1] >= 0 else self._spare
+            if h is None:
+                conn.close()
+                continue
+            h.conn, h.pid, h.alive = conn, hello[2], True
+            threading.Thread(target=self._read_loop, args=(h, conn), daemon=True,
+                             name=f'coordinator-worker-{h.index}').start()
+            h.ready.set()
+
+    def _read_loop(self, h: WorkerHandle, conn):
+        try:
+            while True:
+                msg = conn.recv()
+                if msg[0] == control.SNAPSHOT:
+                    self.snapshots[msg[1]] = msg[2]
+                elif msg[0] == control.REPLY:
+                    with self._reply_cond:
+                        self._replies[msg[1]] = msg[2]
+                        self._reply_cond.notify_all()
+        except (EOFError, OSError):
+            pass
+        if h.conn is conn:            # not an old connection of a worker already replaced
+            h.alive = False
+            with self._dead_cond:
+                self._dead.append((h.index, time.monotonic()))
+                self._dead_cond.notify_all()
+            with self._reply_cond:
+                self._reply_cond.notify_all()
+
+    def _send(self, h, msg):
+        if h.conn is None or not h.alive:
+            return False
+        try:
+            with h.send_lock:
+                h.conn.send(msg)
+            return True
+        except (OSError, ValueError):
+            return False
+
+    def _request(self, h, kind, *args, timeout=REPLY_TIMEOUT_S) -> dict:
+        return self._collect(h, kind, [self._post(h, kind, *args)], timeout)[0]
+
+    def _post(self, h, kind, *args) -> int:
+        req = next(self._req)
+        if not self._send(h, (kind, req, *args)):
+            raise UserError(f'worker {h.index} is not reachable')
+        return req
+
+    def _collect(self, h, kind, reqs, timeout=REPLY_TIMEOUT_S) -> List[dict]:
+        return [self._reply(h, kind, req, time.monotonic() + timeout) for req in reqs]
+
+    def _reply(self, h, kind, req, deadline) -> dict:
+        with self._reply_cond:
+            while req not in self._replies:
+                if not h.alive or time.monotonic() > deadline:
+                    raise UserError(f'worker {h.index}: no reply to {kind} '
+                                    f'({"died" if not h.alive else "timeout"})')
+                self._reply_cond.wait(0.1)
+            reply = self._replies.pop(req)
+        if not reply.get('ok'):
+            raise UserError(f'worker {h.index}: {reply.get("error")}')
+        return reply
+
+    def _attach(self, h, key, state, wait_links=False):
+        return self._request(h, control.ATTACH, self.specs[key].to_dict(), state, wait_links)
+
+    def _attach_all(self, h):
+        # All requests first: the worker creates the nodes back to back.
+        reqs = [self._post(h, control.ATTACH, self.specs[k].to_dict(), self.snapshots.get(k), False)
+                for k in self.nodes_of(h.index)]
+        self._collect(h, control.ATTACH, reqs)
+
+    # ---- crash recovery ---------------------------------------------------------------------
+    def _watch(self):
+        while True:
+            with self._dead_cond:
+                while not self._dead and not self._stopping:
+                    self._dead_cond.wait(0.5)
+                if self._stopping:
+                    return
+                index, t_dead = self._dead.pop(0)
+            if index < 0:                       # the spare itself died: start another
+                self.say('the spare worker died; starting another')
+                self._spare = WorkerHandle(-1)
+                self._spawn(self._spare)
+                continue
+            h = self.workers[index]
+            if h.proc is not None:
+                h.proc.wait()
+            self.say(f'worker {index} died (exit code {h.proc.returncode}); restarting it '
+                     f'with {", ".join(self.nodes_of(index))}')
+            try:
+                with self._ops:
+                    spare, self._spare = self._spare, None
+                    if spare is not None and spare.alive:
+                        spare.index = index          # the spare becomes worker `index`
+                        self.workers[index] = h = spare
+                    else:
+                        self._spawn(h)
+                        self._wait_ready(h)
+                    self._attach_all(h)
+            except UserError as e:
+                self._fatal = f'worker {index} could not be restored: {e}'
+                self.say(self._fatal)
+                continue
+            dt = time.monotonic() - t_dead
+            self.stats.restarts += 1
+            self.stats.restore_s.append(dt)
+            self.say(f'worker {index} restored in {dt:.2f} s')
+            for cb in self.on_restored:
+                cb(index)
+            if self.spare and self._spare is None and not self._stopping:
+                self._spare = WorkerHandle(-1)
+                self._spawn(self._spare)
+
+    # ---- migration and rebalancing ---------------------------------------------------------
+    def migrate(self, key: str, dst: int):
+        """Move a node to worker `dst` with its state; no frame is skipped when called
+        between frames (lockstep). `link_waiter(spec, phase)` (phase 'before', 'detached',
+        'attached'), when set, waits until the frame source sees the change."""
+        with self._ops:
+            src = self.placement[key]
+            if src == dst:
+                return
+            spec = self.specs[key].to_dict()
+            if self.link_waiter:
+                self.link_waiter(spec, 'before')
+            t = [time.monotonic()]
+            reply = self._request(self.workers[src], control.DETACH, key)
+            t.append(time.monotonic())
+            if self.link_waiter:
+                self.link_waiter(spec, 'detached')
+            t.append(time.monotonic())
+            self.snapshots[key] = reply['state']
+            self._attach(self.workers[dst], key, reply['state'], wait_links=True)
+            t.append(time.monotonic())
+            if self.link_waiter:
+                self.link_waiter(spec, 'attached')
+            t.append(time.monotonic())
+            self.placement[key] = dst
+            self.stats.migrations += 1
+            self.say(f'moved {key}: worker {src} -> {dst} in {1e3 * (t[-1] - t[0]):.0f} ms (detach, unlink, '
+                     'attach, link: ' + ', '.join(f'{1e3 * (b - a):.0f}' for a, b in zip(t, t[1:])) + ' ms)')
+
+    def current_allocation(self) -> Allocation:
+        workers = {w: [k for k, v in self.placement.items() if v == w] for w in range(self.n_workers)}
+        a = Allocation(workers, {k: 1 for k in self.specs if self.specs[k].kind == 'quarter'}, {},
+                       self.allocation.case, list(self.rig.names), self.n_workers)
+        a.load_ms = evaluate_loads(a, self.costs.quarter_costs(), **self._cost_kw())
+        return a
+
+    def _cost_kw(self):
+        kw = {'arbiter_costs': dict(self.costs.arbiter_ms)}
+        if self.costs.general_arbiter_ms is not None:
+            kw['general_arbiter_ms'] = self.costs.general_arbiter_ms
+        return kw
+
+    def between_frames(self, frame_index: int):
+        """Called by the frame source between two frames (lockstep): the safe moment to move
+        nodes. Forced migrations (a debug/test option) move one quarter every K frames."""
+        if self.migrate_every and frame_index > 0 and frame_index % self.migrate_every == 0:
+            quarters = [k for k in self.specs if self.specs[k].kind == 'quarter']
+            key = quarters[self._forced % len(quarters)]
+            self._forced += 1
+            self.migrate(key, (self.placement[key] + 1) % self.n_workers)
+        self.maybe_rebalance()
+
+    def maybe_rebalance(self):
+        if not self.rebalance_enabled or not self.costs.measured:
+            return
+        frame = self.costs.frames
+        if frame - self._last_rebalance_frame < 2 * self.hysteresis_frames:
+            return                  # let the costs settle after a move
+        current = self.current_allocation()
+        d = should_rebalance(list(self.costs.history), current, threshold=self.threshold,
+                             hysteresis_frames=self.hysteresis_frames, **self._cost_kw())
+        if not d.rebalance:
+            return
+        moves = [(k, w) for w, keys in d.proposal.workers.items() for k in keys
+                 if k in self.placement and k != 'general_arbiter' and self.placement[k] != w]
+        if not moves:
+            return
+        self._last_rebalance_frame = frame
+        self.stats.rebalances += 1
+        self.say(f'rebalance at frame {frame}: {d.reason}; imbalance {current.imbalance:.2f} -> '
+                 f'{d.proposal.imbalance:.2f}; {len(moves)} move(s)')
+        for key, w in moves:
+            self.migrate(key, w)
+        self.allocation = d.proposal
+
+    # ---- ROS side: cost input and the coordinator's own diagnostics ------------------------
+    def attach_ros(self, node, rate_mode_period_s: Optional[float] = None):
+        """Subscribe /diagnostics on `node` and publish the coordinator's entry once per
+        frame. With `rate_mode_period_s`, rebalancing runs on a timer (no lockstep hook)."""
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        from multicam_ego_motion.qos import RELIABLE
+        self._ros_node = node
+        self._diag_pub = node.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
+        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, RELIABLE)
+        if rate_mode_period_s:
+            node.create_timer(rate_mode_period_s, self._rebalance_in_background)
+        self._bg_busy = threading.Lock()
+
+    def _rebalance_in_background(self):
+        # Moves block on worker replies: never in the executor thread that delivers them.
+        if self._bg_busy.acquire(blocking=False):
+            def run():
+                try:
+                    self.maybe_rebalance()
+                except UserError as e:
+                    self.say(f'rebalancing failed: {e}')
+                finally:
+                    self._bg_busy.release()
+            threading.Thread(target=run, daemon=True).start()
+
+    def _on_diagnostics(self, msg):
+        from multicam_ego_motion import diagnostics
+        closed = False
+        for st in msg.status:
+            closed |= self.costs.observe(st.name, diagnostics.values_of(st))
+        if closed:
+            self._publish_diag(msg.header.stamp)
+
+    def _publish_diag(self, stamp):
+        from multicam_ego_motion import diagnostics
+        a = self.current_allocation()
+        values = {'workers': self.n_workers, 'imbalance': float(a.imbalance),
+                  'makespan_ms': float(a.makespan_ms), 'migrations': self.stats.migrations,
+                  'rebalances': self.stats.rebalances, 'restarts': self.stats.restarts}
+        for w, keys in a.workers.items():
+            values[f'worker_{w}'] = ','.join(keys)
+            values[f'worker_{w}_load_ms'] = float(a.load_ms.get(w, 0.0))
+        level = 'ok' if all(h.alive for h in self.workers) else 'warn'
+        self._diag_pub.publish(diagnostics.array(stamp, [diagnostics.status(
+            'ego_motion/coordinator', level, f'{self.n_workers} workers, imbalance {a.imbalance:.2f}', values)]))
