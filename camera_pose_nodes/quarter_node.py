@@ -113,6 +113,12 @@ class QuarterNode(Node):
 
     def process(self, msg: Image):
         stamp_ns = stamp_to_ns(msg.header.stamp)
+        if self.last_processed_ns is not None and stamp_ns <= self.last_processed_ns:
+            # A duplicate or late image would run the tracker and the filter backwards in time.
+            self.publish_diag(msg.header.stamp, 'warn',
+                              f'image dropped: stamp {stamp_ns / 1e9:.6f} s is not after the last '
+                              f'processed {self.last_processed_ns / 1e9:.6f} s (duplicate or out of order)')
+            return
         try:
             gray = image_msg_to_gray(msg, expected_size=self.estimator.image_size)
         except (UserError, ValueError) as e:

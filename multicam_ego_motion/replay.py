@@ -42,6 +42,22 @@ def resolve_rig(bag_reader, rig_arg):
     return rig_from_bag(bag_reader), None
 
 
+CAMERA_TOPIC_TYPES = (('image_topic', 'sensor_msgs/msg/Image'),
+                      ('camera_info_topic', 'sensor_msgs/msg/CameraInfo'))
+
+
+def check_camera_topic_types(reader, rig):
+    """A camera topic of another type would never match the nodes' subscriptions and the
+    lockstep player would wait for them in vain: reject the bag before the graph starts."""
+    for cam in rig.cameras:
+        for attr, expected in CAMERA_TOPIC_TYPES:
+            topic = getattr(cam, attr)
+            found = reader.topics.get(topic)
+            if found is not None and found != expected:
+                raise UserError(f'bag {reader.path}: {topic} holds {found or "messages of no known type"}, '
+                                f'expected {expected} (camera {cam.name})')
+
+
 def graph_overrides(lockstep: bool, use_wheel: bool):
     # Lockstep replay waits for everything (deterministic); rate mode must keep going.
     wait = 60.0 if lockstep else 0.3
@@ -91,6 +107,7 @@ def run(args) -> int:
         raise UserError(f'output folder {out} already holds a replay (output/ exists)')
     reader = Rosbag2Reader(args.bag)
     rig, rig_file = resolve_rig(reader, args.rig)
+    check_camera_topic_types(reader, rig)
     missing = [c.name for c in rig.cameras if c.image_topic not in reader.topics]
     if len(missing) == len(rig.cameras):
         raise UserError(f'bag {args.bag} has none of the rig\'s image topics')
@@ -129,7 +146,8 @@ def run(args) -> int:
         player = BagPlayer(args.bag, PlayOptions(
             lockstep=lockstep, rate=args.rate or 1.0, ack_topic='/odom',
             ack_timeout_s=args.ack_timeout, discovery_s=0.5, progress=None,
-            start_offset_s=args.start_offset, duration_s=args.duration))
+            start_offset_s=args.start_offset, duration_s=args.duration,
+            health_check=launcher.check_alive))
         t_play = time.monotonic()
         result = player.play(node)
         wall = time.monotonic() - t_play

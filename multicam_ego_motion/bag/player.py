@@ -49,7 +49,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
-from typing import Dict, Iterable, Iterator, List, Optional
+from typing import Callable, Dict, Iterable, Iterator, List, Optional
 
 from multicam_ego_motion.bag.rosbag2_reader import BagMessage, Rosbag2Reader
 from multicam_ego_motion.errors import UserError
@@ -73,6 +73,10 @@ class PlayOptions:
     progress: Optional[bool] = None               # None: only when stderr is a terminal
     discovery_s: float = 1.0          # listen to the graph this long before the first frame
     discovery_timeout_s: float = 5.0  # then wait at most this long for subscribers to match
+    # Called about twice a second while the player waits (for the graph or an ack); raising
+    # (a UserError) aborts playback: `replay` uses it to notice a dead worker at once
+    # instead of after the ack timeout.
+    health_check: Optional[Callable[[], None]] = None
 
 
 @dataclass
@@ -327,10 +331,15 @@ class BagPlayer:
     def _wait(self, predicate, timeout_s: float) -> bool:
         """Spin (own executor) or sleep (someone else spins) until predicate() or timeout."""
         deadline = time.monotonic() + max(timeout_s, 0.0)
+        next_check = time.monotonic() + 0.5
         while True:
             with self._cond:
                 if predicate():
                     return True
+            now = time.monotonic()
+            if self.options.health_check is not None and now >= next_check:
+                self.options.health_check()
+                next_check = now + 0.5
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 return False

@@ -5,6 +5,7 @@ cost has been measured every quarter is assumed to cost the same.
 """
 import json
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -60,11 +61,22 @@ class GraphLauncher:
         return self
 
     def check_alive(self):
+        """UserError naming the first worker that has exited: what it hosted, and its own
+        error line (a worker that fails at start prints one) or the signal that killed it."""
         for i, proc, _ in self.procs:
-            if proc.poll() is not None:
-                tail = (self.log_dir / f'worker_{i}.log').read_text()[-2000:]
-                raise UserError(f'worker {i} exited with code {proc.returncode}: '
-                                f'{tail.strip().splitlines()[-1] if tail.strip() else "no output"}')
+            if proc.poll() is None:
+                continue
+            hosted = sorted({n.key.split('/')[0] for n in self.placement[i]})
+            code = proc.returncode
+            if code < 0:
+                name = signal.Signals(-code).name if -code in signal.valid_signals() else f'signal {-code}'
+                why = f'was killed by {name}'
+            else:
+                lines = (self.log_dir / f'worker_{i}.log').read_text().strip().splitlines()
+                errors = [l.split(': error: ', 1)[1] for l in lines if ': error: ' in l]
+                why = f'exited with code {code}: ' + (errors[-1] if errors else lines[-1] if lines else 'no output')
+            raise UserError(f'worker {i} (pid {proc.pid}, hosting {", ".join(hosted)}) {why} '
+                            f'(log: {self.log_dir / f"worker_{i}.log"})')
 
     def stop(self, timeout=10.0):
         for _, proc, _ in self.procs:
