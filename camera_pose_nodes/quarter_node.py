@@ -103,7 +103,10 @@ class QuarterNode(Node):
             if self.estimator is None:
                 if self.intrinsics is None and time.monotonic() - arrived > 2.0:
                     self.pending.popleft()
-                    self.publish_diag(None, 'error', f'no CameraInfo on {self.camera.camera_info_topic}')
+                    # Keep naming the actual problem: a CameraInfo that came but was unusable.
+                    why = (f'bad CameraInfo: {self.info_error}' if self.info_error
+                           else f'no CameraInfo on {self.camera.camera_info_topic}')
+                    self.publish_diag(msg.header.stamp, 'error', f'{why}: image dropped')
                     continue
                 return
             if not self.ready_for_next(arrived):

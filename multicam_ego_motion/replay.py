@@ -154,9 +154,13 @@ def run(args) -> int:
         time.sleep(0.5 if lockstep else 1.0)  # let the last estimates reach the recorder
         launcher.check_alive()
     finally:
+        # Stop the spinning thread before the recorder destroys its subscriptions: spinning
+        # over destroyed entities raises in that thread (InvalidHandle).
+        executor.shutdown()
+        if spinner.is_alive():
+            spinner.join(timeout=5.0)
         counts = recorder.close()
         launcher.stop()
-        executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
     return summarize(args.bag, reader, out, counts, result, wall, time.monotonic() - t_start,

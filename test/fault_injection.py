@@ -99,10 +99,10 @@ def encoding(camera, name):
     return _replace_images(camera, change)
 
 
-def resize(camera, width, height):
-    """Images of another size than the camera's CameraInfo says."""
+def resize(camera, width, height, t0=-math.inf, t1=math.inf):
+    """Images of another size than the camera's CameraInfo says (between t0 and t1)."""
     return _replace_images(camera, lambda m: _set_pixels(
-        m, cv2.resize(_pixels(m), (width, height), interpolation=cv2.INTER_AREA)))
+        m, cv2.resize(_pixels(m), (width, height), interpolation=cv2.INTER_AREA)), t0, t1)
 
 
 def photometric(camera, kind, t0, t1):

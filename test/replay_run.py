@@ -1,12 +1,17 @@
 """Run `ego-motion replay` on a bag and read back what the graph recorded: odometry,
 per-camera estimates and /diagnostics, as plain numpy / dicts for the fault tests."""
+import os
+import subprocess
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import yaml
 
-from conftest import run_cli
+import process_table
+from conftest import REPO
 from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
 from multicam_ego_motion.pose_messages import pose_to_T, stamp_to_ns
 
@@ -27,6 +32,10 @@ class ReplayRun:
         self.bag, self.out = Path(bag), Path(out)
         self.returncode, self.stdout, self.stderr, self.wall_s = returncode, stdout, stderr, wall_s
         self.start_ns = Rosbag2Reader(bag).start_ns
+
+    def leftover_processes(self):
+        """Processes of this replay (itself, its workers) still alive after it ended."""
+        return process_table.wait_gone(process_table.marked(str(self.out)), 5.0)
 
     def __repr__(self):   # what pytest shows when an assertion on the run fails
         return f'ReplayRun({self.bag}, rc={self.returncode}, stderr={self.stderr[-2000:]!r})'
@@ -76,11 +85,60 @@ class ReplayRun:
         return out
 
 
+def replay_env(out, **overrides):
+    """The test's environment (PYTHONPATH to this tree) plus the marker that finds this
+    replay's processes later; an override of None removes the variable.
+
+    Without an override the replay picks its own free ROS_DOMAIN_ID when it starts: the
+    test process's domain looks free to other test sessions between two replays."""
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
+    env.pop('ROS_DOMAIN_ID', None)
+    env[process_table.MARKER] = str(out)
+    env.update(overrides)
+    return {k: v for k, v in env.items() if v is not None}
+
+
+def replay_command(bag, out, *extra, workers=2):
+    return [sys.executable, '-m', 'multicam_ego_motion.cli', 'replay', str(bag), '--out', str(out),
+            '--workers', str(workers), *map(str, extra)]
+
+
 def replay(bag, out, *extra, workers=2, timeout=300, env=None) -> ReplayRun:
+    """Run a replay to its end (or failure)."""
     t0 = time.monotonic()
-    r = run_cli('replay', bag, '--out', out, '--workers', workers, *extra, timeout=timeout,
-                **({'env': env} if env else {}))
+    r = subprocess.run(replay_command(bag, out, *extra, workers=workers), capture_output=True,
+                       text=True, timeout=timeout, env=env or replay_env(out))
     return ReplayRun(bag, out, r.returncode, r.stdout, r.stderr, time.monotonic() - t0)
+
+
+def start_replay(bag, out, *extra, workers=2, env=None) -> subprocess.Popen:
+    """A replay in the background, in its own session (a terminal's Ctrl-C reaches the
+    whole process group: os.killpg(proc.pid, SIGINT) does the same)."""
+    return subprocess.Popen(replay_command(bag, out, *extra, workers=workers),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env or replay_env(out), start_new_session=True)
+
+
+def recorded_counts(out) -> dict:
+    """Messages per topic the recorder has flushed so far (metadata.yaml, rewritten every
+    second while the replay runs); {} before the first flush."""
+    meta = Path(out) / 'output' / 'metadata.yaml'
+    try:
+        info = yaml.safe_load(meta.read_text())['rosbag2_bagfile_information']
+    except (OSError, yaml.YAMLError, TypeError, KeyError):
+        return {}
+    return {t['topic_metadata']['name']: t['message_count'] for t in info['topics_with_message_count']}
+
+
+def wait_for_odom(proc, out, n: int, timeout_s: float = 120.0):
+    """Until the running replay has recorded n /odom messages (fails if it ends first)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if recorded_counts(out).get('/odom', 0) >= n:
+            return
+        assert proc.poll() is None, f'replay ended early: {proc.communicate()}'
+        time.sleep(0.2)
+    raise AssertionError(f'no {n} /odom messages within {timeout_s} s')
 
 
 def ground_truth(bag, start_ns):
