@@ -72,8 +72,9 @@ def photometric_run(fault_dir):
 
 @pytest.fixture(scope='session')
 def timing_run(fault_dir):
+    # Swap before duplicating: a duplicate adds a frame and would shift the indices.
     bag = fi.rewrite_bag(fault_dir / 'timing', SECONDS, fi.drop_every('front', 3, *DROP_WINDOW),
-                         fi.duplicate_frame(DUPLICATED_FRAME), fi.swap_frames(SWAPPED_FRAME))
+                         fi.swap_frames(SWAPPED_FRAME), fi.duplicate_frame(DUPLICATED_FRAME))
     return replay(bag, fault_dir / 'timing_out')
 
 

@@ -31,7 +31,10 @@ class ReplayRun:
     def __init__(self, bag, out, returncode, stdout, stderr, wall_s):
         self.bag, self.out = Path(bag), Path(out)
         self.returncode, self.stdout, self.stderr, self.wall_s = returncode, stdout, stderr, wall_s
-        self.start_ns = Rosbag2Reader(bag).start_ns
+
+    @property
+    def start_ns(self):
+        return Rosbag2Reader(self.bag).start_ns
 
     def leftover_processes(self):
         """Processes of this replay (itself, its workers) still alive after it ended."""

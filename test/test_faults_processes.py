@@ -145,7 +145,8 @@ def test_killed_worker_fails_the_replay_at_once_naming_it(short_bag, tmp_path, h
     out = tmp_path / 'out'
     run, victim, keys, after_s = kill_worker(short_bag, out, hosting_general_arbiter)
     cameras = sorted({k.split('/')[0] for k in keys})
-    assert_one_line_error(run, f'pid {victim}', 'killed by SIGKILL', ', '.join(cameras))
+    assert_one_line_error(run, f'pid {victim}', 'killed by SIGKILL', ', '.join(cameras),
+                          graph_started=True)
     assert after_s < 15, after_s                      # not the 120 s ack timeout
     assert_output_has_a_prefix_of_the_frames(run, short_bag)
     assert run.leftover_processes() == []
