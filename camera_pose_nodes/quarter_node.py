@@ -112,7 +112,10 @@ class QuarterNode(Node):
             if self.estimator is None:
                 if self.intrinsics is None and time.monotonic() - arrived > 2.0:
                     self.pending.popleft()
-                    self.publish_diag(None, 'error', f'no CameraInfo on {self.camera.camera_info_topic}')
+                    # Keep naming the actual problem: a CameraInfo that came but was unusable.
+                    why = (f'bad CameraInfo: {self.info_error}' if self.info_error
+                           else f'no CameraInfo on {self.camera.camera_info_topic}')
+                    self.publish_diag(msg.header.stamp, 'error', f'{why}: image dropped')
                     continue
                 return
             if not self.ready_for_next(arrived):
@@ -122,6 +125,12 @@ class QuarterNode(Node):
 
     def process(self, msg: Image):
         stamp_ns = stamp_to_ns(msg.header.stamp)
+        if self.last_processed_ns is not None and stamp_ns <= self.last_processed_ns:
+            # A duplicate or late image would run the tracker and the filter backwards in time.
+            self.publish_diag(msg.header.stamp, 'warn',
+                              f'image dropped: stamp {stamp_ns / 1e9:.6f} s is not after the last '
+                              f'processed {self.last_processed_ns / 1e9:.6f} s (duplicate or out of order)')
+            return
         try:
             gray = image_msg_to_gray(msg, expected_size=self.estimator.image_size)
         except (UserError, ValueError) as e:

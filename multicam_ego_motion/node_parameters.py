@@ -23,9 +23,10 @@ def declare_from_table(node, table: dict) -> dict:
         try:
             value = node.declare_parameter(name, default, desc).value
         except Exception as e:  # rclpy raises InvalidParameterValueException with its own text
-            raise UserError(f'{node.get_name()}: parameter {name}: {e} (allowed range [{lo}, {hi}])') from None
+            raise UserError(f'{node.get_fully_qualified_name()}: parameter {name}: {e} '
+                            f'(allowed range [{lo}, {hi}])') from None
         if lo is not None and not isinstance(default, bool) and not (lo <= value <= hi):
-            raise UserError(f'{node.get_name()}: parameter {name} = {value} is out of range '
+            raise UserError(f'{node.get_fully_qualified_name()}: parameter {name} = {value} is out of range '
                             f'[{lo}, {hi}] ({description})')
         values[name] = value
     return values

@@ -47,6 +47,22 @@ def resolve_rig(bag_reader, rig_arg):
     return rig_from_bag(bag_reader), None
 
 
+CAMERA_TOPIC_TYPES = (('image_topic', 'sensor_msgs/msg/Image'),
+                      ('camera_info_topic', 'sensor_msgs/msg/CameraInfo'))
+
+
+def check_camera_topic_types(reader, rig):
+    """A camera topic of another type would never match the nodes' subscriptions and the
+    lockstep player would wait for them in vain: reject the bag before the graph starts."""
+    for cam in rig.cameras:
+        for attr, expected in CAMERA_TOPIC_TYPES:
+            topic = getattr(cam, attr)
+            found = reader.topics.get(topic)
+            if found is not None and found != expected:
+                raise UserError(f'bag {reader.path}: {topic} holds {found or "messages of no known type"}, '
+                                f'expected {expected} (camera {cam.name})')
+
+
 def graph_overrides(lockstep: bool, use_wheel: bool):
     # Lockstep replay waits for everything (deterministic); rate mode must keep going.
     wait = 60.0 if lockstep else 0.3
@@ -168,7 +184,8 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
             lockstep=lockstep, rate=rate, ack_topic='/odom',
             ack_timeout_s=ack_timeout, discovery_s=0.5, progress=None,
             start_offset_s=start_offset, duration_s=duration,
-            between_frames=coordinator.between_frames if lockstep else None))
+            between_frames=coordinator.between_frames if lockstep else None,
+            health_check=coordinator.check_alive))
         coordinator.link_waiter = make_link_waiter(rig, player)
         coordinator.on_restored.append(lambda w: player.request_republish())
         t_play = time.monotonic()
@@ -178,9 +195,13 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
         coordinator.check_alive()
         peak = peak_rss_kb(coordinator.worker_pids() + [os.getpid()])
     finally:
+        # Stop the spinning thread before the recorder destroys its subscriptions: spinning
+        # over destroyed entities raises in that thread (InvalidHandle).
+        executor.shutdown()
+        if spinner.is_alive():
+            spinner.join(timeout=5.0)
         counts = recorder.close()
         coordinator.stop()
-        executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
     return GraphRun(counts, result, wall, time.monotonic() - t_start, received, peak, coordinator)
@@ -197,6 +218,7 @@ def run(args) -> int:
         raise UserError(f'output folder {out} already holds a replay (output/ exists)')
     reader = Rosbag2Reader(args.bag)
     rig, rig_file = resolve_rig(reader, args.rig)
+    check_camera_topic_types(reader, rig)
     missing = [c.name for c in rig.cameras if c.image_topic not in reader.topics]
     if len(missing) == len(rig.cameras):
         raise UserError(f'bag {args.bag} has none of the rig\'s image topics')

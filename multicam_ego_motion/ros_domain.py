@@ -2,11 +2,44 @@
 a replay must never talk to a robot (or another test) on the same network."""
 import os
 
+# RTPS default port mapping: domain d uses the UDP ports 7400 + 250 d ... + 249 (discovery
+# multicast, then two unicast ports per participant). 1..100 stays below the Linux
+# ephemeral range (32768), so a bound port there belongs to a DDS participant.
+PORT_BASE, DOMAIN_GAIN = 7400, 250
+DOMAINS = range(1, 101)
+
+
+def _udp_ports_in_use():
+    ports = set()
+    for table in ('/proc/net/udp', '/proc/net/udp6'):
+        try:
+            rows = open(table).read().splitlines()[1:]
+        except OSError:
+            continue
+        for row in rows:
+            ports.add(int(row.split()[1].rsplit(':', 1)[1], 16))
+    return ports
+
+
+def free_domain(seed: int = None) -> int:
+    """A domain no participant on this host uses right now, searched from a pid-spread start
+    (two runs picking at the same instant rarely start from the same place). Falls back to
+    the start when every domain looks busy or /proc is not there."""
+    seed = os.getpid() * 7919 if seed is None else seed
+    used = _udp_ports_in_use()
+    start = seed % len(DOMAINS)
+    for k in range(len(DOMAINS)):
+        d = DOMAINS[(start + k) % len(DOMAINS)]
+        lo = PORT_BASE + DOMAIN_GAIN * d
+        if not any(lo <= p < lo + DOMAIN_GAIN for p in used):
+            return d
+    return DOMAINS[start]
+
 
 def isolate(env=None) -> dict:
     env = os.environ if env is None else env
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     if 'ROS_DOMAIN_ID' not in env:
-        # 1..100: valid on Linux for the default port mapping; pid spreads parallel runs.
-        env['ROS_DOMAIN_ID'] = str(1 + (os.getpid() * 7919) % 100)
+        # pid-spread alone let two concurrent runs share a domain and see each other's frames.
+        env['ROS_DOMAIN_ID'] = str(free_domain())
     return env

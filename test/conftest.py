@@ -11,7 +11,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 # Before anything imports rclpy: this process (and the subprocesses it starts, which inherit
 # the environment) talk only to each other.
-os.environ['ROS_DOMAIN_ID'] = str(1 + os.getpid() % 100)
+from multicam_ego_motion.ros_domain import free_domain  # noqa: E402  (no rclpy inside)
+os.environ['ROS_DOMAIN_ID'] = str(free_domain())
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 # One BLAS thread, as the product runs (multicam_ego_motion/cli.py says why).
 for _var in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
@@ -55,3 +56,7 @@ class SpinningNode:
     def close(self):
         self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
+
+
+# Session fixtures of the fault-injection suite (faulty bags and one replay of each).
+pytest_plugins = ['fault_replays']

@@ -77,6 +77,10 @@ class PlayOptions:
     # lockstep: called with the frame index after each acknowledged trigger frame, before the
     # next one is published (the coordinator moves nodes there)
     between_frames: Optional[Callable[[int], None]] = None
+    # Called about twice a second while the player waits (for the graph or an ack); raising
+    # (a UserError) aborts playback: `replay` uses it to notice a dead worker at once
+    # instead of after the ack timeout.
+    health_check: Optional[Callable[[], None]] = None
 
 
 @dataclass
@@ -368,10 +372,15 @@ class BagPlayer:
     def _wait(self, predicate, timeout_s: float) -> bool:
         """Spin (own executor) or sleep (someone else spins) until predicate() or timeout."""
         deadline = time.monotonic() + max(timeout_s, 0.0)
+        next_check = time.monotonic() + 0.5
         while True:
             with self._cond:
                 if predicate():
                     return True
+            now = time.monotonic()
+            if self.options.health_check is not None and now >= next_check:
+                self.options.health_check()
+                next_check = now + 0.5
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 return False

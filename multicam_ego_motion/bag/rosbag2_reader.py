@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
+import zstandard
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from rclpy.serialization import deserialize_message
@@ -53,7 +54,10 @@ def _mcap_files(path: Path):
     return files
 
 
-_CORRUPT = (McapError, ValueError, EOFError, OSError, KeyError, IndexError, MemoryError)
+# A damaged chunk fails in its decompressor (zstandard.ZstdError; lz4 raises RuntimeError)
+# or, with CRCs checked, in mcap itself: all of them mean "this bag is damaged".
+_CORRUPT = (McapError, ValueError, EOFError, OSError, KeyError, IndexError, MemoryError,
+            zstandard.ZstdError, RuntimeError)
 
 
 def _corrupt(path, e):
@@ -105,7 +109,8 @@ class Rosbag2Reader:
         for f in self.files:
             try:
                 with open(f, 'rb') as stream:
-                    reader = make_reader(stream)
+                    # CRCs on: an uncompressed chunk with flipped bytes must not decode as data.
+                    reader = make_reader(stream, validate_crcs=True)
                     for schema, channel, msg in reader.iter_messages(
                             topics=list(topics) if topics is not None else None,
                             starting_at=start_ns, ending_before=end_ns, log_time_order=True):

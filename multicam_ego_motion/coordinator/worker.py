@@ -146,6 +146,8 @@ class Worker:
             node.on_frame_done = lambda n, key=key: self.snapshot(key, n)
         self.hosted[key] = node
         self.executor.add_node(node)
+        # Which process hosts what: read by people after a crash, and by the fault tests.
+        print(f'worker {self.index} (pid {os.getpid()}) hosts {", ".join(self.hosted)}', flush=True)
 
         if not wait_links:          # start-up and restore: nothing to match yet / frame re-sent
             self.send((control.REPLY, req, {'ok': True}))
