@@ -83,8 +83,10 @@ class QuarterNode(Node):
         # A frame delivered twice (the player re-publishes the current frame after a worker
         # restart, for the nodes that lost it) is processed once.
         stamp_ns = stamp_to_ns(msg.header.stamp)
-        if (self.last_processed_ns is not None and stamp_ns <= self.last_processed_ns) \
-                or any(stamp_to_ns(m.header.stamp) == stamp_ns for _, m in self.pending):
+        if any(stamp_to_ns(m.header.stamp) == stamp_ns for _, m in self.pending):
+            return
+        if self.last_processed_ns is not None and stamp_ns <= self.last_processed_ns:
+            self.report_stale(msg, stamp_ns)
             return
         self.pending.append((time.monotonic(), msg))
         self.drain()
@@ -123,13 +125,16 @@ class QuarterNode(Node):
             self.pending.popleft()
             self.process(msg)
 
+    def report_stale(self, msg, stamp_ns):
+        # A duplicate or late image would run the tracker and the filter backwards in time.
+        self.publish_diag(msg.header.stamp, 'warn',
+                          f'image dropped: stamp {stamp_ns / 1e9:.6f} s is not after the last '
+                          f'processed {self.last_processed_ns / 1e9:.6f} s (duplicate or out of order)')
+
     def process(self, msg: Image):
         stamp_ns = stamp_to_ns(msg.header.stamp)
         if self.last_processed_ns is not None and stamp_ns <= self.last_processed_ns:
-            # A duplicate or late image would run the tracker and the filter backwards in time.
-            self.publish_diag(msg.header.stamp, 'warn',
-                              f'image dropped: stamp {stamp_ns / 1e9:.6f} s is not after the last '
-                              f'processed {self.last_processed_ns / 1e9:.6f} s (duplicate or out of order)')
+            self.report_stale(msg, stamp_ns)
             return
         try:
             gray = image_msg_to_gray(msg, expected_size=self.estimator.image_size)
