@@ -63,13 +63,19 @@ def check_camera_topic_types(reader, rig):
                                 f'expected {expected} (camera {cam.name})')
 
 
+# Lockstep waits this long for a camera (or quarter) that has not reported a frame before
+# calling it absent: normal frames take ~0.2 s, so this only fires for a stream that really
+# stopped, even on an oversubscribed machine (5 s did fire there).
+LOCKSTEP_SYNC_TIMEOUT_S = 10.0
+
+
 def graph_overrides(lockstep: bool, use_wheel: bool):
     # Lockstep replay waits for everything (deterministic); rate mode must keep going.
     wait = 60.0 if lockstep else 0.3
     return {'quarter': {'image_qos': 'reliable' if lockstep else 'sensor_data',
                         'feedback_timeout_s': wait},
-            'camera_arbiter': {'sync_timeout_s': 5.0 if lockstep else 0.2},
-            'general_arbiter': {'sync_timeout_s': 5.0 if lockstep else 0.2,
+            'camera_arbiter': {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2},
+            'general_arbiter': {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2,
                                 'use_wheel_odometry': use_wheel}}
 
 
