@@ -18,6 +18,10 @@ from multicam_ego_motion.node_parameters import declare_from_table
 from multicam_ego_motion.pose_messages import estimate_to_msg, msg_to_estimate, ns_to_stamp
 from multicam_ego_motion.qos import RELIABLE
 
+# Timeouts only: the normal path is driven by messages. Every timer wake-up makes rclpy's
+# executor rebuild its wait set over all of the worker's entities, so poll slowly.
+POLL_PERIOD_S = 0.1
+
 NODE_PARAMETERS = {
     'camera': ('front', 'name of the camera whose quarters this arbiter fuses', None, None),
     'quarters': (4, 'number of quarter nodes of this camera', 1, 4),
@@ -42,7 +46,7 @@ class CameraArbiterNode(Node):
         for s in sources:
             self.create_subscription(PoseWithCovarianceStamped, f'{s}/pose',
                                      lambda m, s=s: self.on_quarter(s, m), RELIABLE)
-        self.create_timer(0.05, lambda: self.release(self.sync.poll(time.monotonic())))
+        self.create_timer(POLL_PERIOD_S, lambda: self.release(self.sync.poll(time.monotonic())))
 
     def on_quarter(self, source, msg):
         est = msg_to_estimate(msg, source=f'{self.camera}/{source}')

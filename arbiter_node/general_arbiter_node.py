@@ -30,6 +30,10 @@ from multicam_ego_motion.qos import RELIABLE
 from multicam_ego_motion.rig import load_rig
 from multicam_ego_motion.se3 import is_valid_covariance
 
+# Timeouts only: the normal path is driven by messages. Every timer wake-up makes rclpy's
+# executor rebuild its wait set over all of the worker's entities, so poll slowly.
+POLL_PERIOD_S = 0.1
+
 NODE_PARAMETERS = {
     'rig_file': ('', 'rig YAML (camera names, topics, extrinsics base_link -> optical)', None, None),
     'odom_frame': ('odom', 'REP-105 odometry frame', None, None),
@@ -68,7 +72,7 @@ class GeneralArbiterNode(Node):
         if p['use_wheel_odometry']:
             self.create_subscription(Odometry, p['wheel_odometry_topic'], self.on_wheel, RELIABLE)
         self.create_service(Trigger, '~/reset', self.on_reset)
-        self.create_timer(0.05, lambda: self.release(self.sync.poll(time.monotonic())))
+        self.create_timer(POLL_PERIOD_S, lambda: self.release(self.sync.poll(time.monotonic())))
         self.get_logger().info(f'fusing cameras {", ".join(self.rig.names)}')
 
     def on_wheel(self, msg: Odometry):

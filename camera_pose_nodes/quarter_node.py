@@ -28,6 +28,10 @@ from multicam_ego_motion.pose_messages import estimate_to_msg, msg_to_estimate, 
 from multicam_ego_motion.qos import RELIABLE, image_qos
 from multicam_ego_motion.rig import load_rig
 
+# Timeouts only: the normal path is driven by messages. Every timer wake-up makes rclpy's
+# executor rebuild its wait set over all of the worker's entities, so poll slowly.
+POLL_PERIOD_S = 0.1
+
 NODE_PARAMETERS = {
     'camera': ('front', 'name of the camera in the rig file', None, None),
     'quarter': (1, 'image quarter: 1 top-left, 2 top-right, 3 bottom-left, 4 bottom-right', 1, 4),
@@ -61,7 +65,7 @@ class QuarterNode(Node):
         self.create_subscription(Image, self.camera.image_topic, self.on_image, image_qos(p['image_qos']))
         self.create_subscription(CameraInfo, self.camera.camera_info_topic, self.on_info, RELIABLE)
         self.create_subscription(PoseWithCovarianceStamped, p['fused_pose_topic'], self.on_fused, RELIABLE)
-        self.create_timer(0.05, self.drain)
+        self.create_timer(POLL_PERIOD_S, self.drain)
         self.get_logger().info(f'{self.source}: waiting for {self.camera.image_topic}')
 
     # --- inputs -------------------------------------------------------------------------
