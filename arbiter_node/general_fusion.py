@@ -38,7 +38,6 @@ PARAMETERS = {
     'max_dt': (1.0, 'prediction step cap (s); longer gaps are integrated in steps', 0.01, 10.0),
     'lost_timeout_s': (2.0, 'without camera updates or wheel prior for this long, the state is lost', 0.1, 600.0),
     'wheel_planar_only': (True, 'use only vx, vy, wz of the wheel twist (a wheeled base measures nothing else)', None, None),
-    'wheel_use_yaw_rate': (True, 'fuse the wheel yaw rate (wheels slip and carry a yaw-rate bias: off lets the cameras own heading)', None, None),
     'wheel_gate_chi2': (1e3, 'chi-square gate of the wheel twist against the EKF twist (slip detection)', 1.0, 1e9),
     'scale_direction_sigma_rad': (0.01, 'angular std of a camera translation direction fed to the rig-scale observer (rad)', 1e-5, 0.5),
     'scale_min_rotation_rad': (0.02, 'rig-scale observer: below this body rotation scale is unobservable (rad)', 1e-4, 1.0),
@@ -152,8 +151,6 @@ class GeneralFusion:
         wheel_used = False
         if wheel_twist is not None:
             axes = (0, 1, 5) if p['wheel_planar_only'] else tuple(range(6))
-            if not p['wheel_use_yaw_rate']:
-                axes = tuple(a for a in axes if a != 5)
             wheel_used, _ = self.ekf.update_twist(wheel_twist[0], wheel_twist[1], axes, p['wheel_gate_chi2'])
 
         if camera_update or wheel_used:

@@ -215,6 +215,7 @@ class QuarterEstimator:
             h = tr.history[i]
             if h[-1][0] != stamp_ns:
                 continue
+            # the oldest view with a fused pose: the longest baseline, the best-defined line
             o = next((o for o in h[:-1] if o[0] in self.fused_poses), None)
             if o is not None:
                 ids.append(i)
