@@ -211,13 +211,17 @@ class QuarterEstimator:
         each against its oldest view that has a fused pose. Returns the inlier count."""
         tr = self.tracker
         ids, first, now = [], [], []
+        body_p = self.ekf.T_odom_base[:3, 3]
         for i, pt in zip(tr.ids[without_landmark].tolist(), tr.pts[without_landmark]):
             h = tr.history[i]
             if h[-1][0] != stamp_ns:
                 continue
             # the oldest view with a fused pose: the longest baseline, the best-defined line
             o = next((o for o in h[:-1] if o[0] in self.fused_poses), None)
-            if o is not None:
+            # The body itself must have moved: spinning in place only swings the camera on its
+            # lever arm, a baseline too short for its direction to be known from the poses.
+            if o is not None and np.linalg.norm(self.fused_poses[o[0]][:3, 3] - body_p) \
+                    >= self.params.epipolar_min_baseline:
                 ids.append(i)
                 first.append((self.fused_poses[o[0]], o[1:]))
                 now.append(pt)
