@@ -4,6 +4,10 @@ ROS-free: the node converts messages (image_conversion), builds the intrinsics
 (camera_model) and calls process_image() per frame and apply_fused_pose() when the general
 arbiter's fused pose of that frame comes back. get_state()/set_state() hand the quarter
 over to another process (the coordinator's rebalancing) with bit-identical continuation.
+
+Pose: tracks with a landmark are measured by reprojection; tracks without one (too young to
+be triangulated, e.g. in fast turns) by their epipolar line to an earlier fused view, which
+fixes rotation but not distance (see README, design notes).
 """
 import math
 import time
