@@ -175,6 +175,63 @@ class PoseEKF:
         self._condition()
         return inl
 
+    # ----- epipolar update (tracks without a landmark) -------------------------------------
+    def epipolar_residual(self, R_ob, p, c1, r1, xy2, T_base_cam):
+        """Signed distance (normalized image units) of the observations xy2 (N x 2) from the
+        epipolar lines of the rays r1 (N x 3, odom) seen from camera centres c1 (N x 3, odom),
+        with the body at (R_ob, p). Also returns |n_xy| / |n| (near 0 at the epipole)."""
+        R_bc, t_bc = T_base_cam[:3, :3], T_base_cam[:3, 3]
+        A = (R_ob @ R_bc).T                              # odom -> camera
+        c2 = p + R_ob @ t_bc
+        n = np.cross((c1 - c2) @ A.T, r1 @ A.T)          # epipolar plane normal, camera frame
+        nxy = np.hypot(n[:, 0], n[:, 1])
+        e = (n[:, 0] * xy2[:, 0] + n[:, 1] * xy2[:, 1] + n[:, 2]) / np.maximum(nxy, 1e-12)
+        return e, nxy / np.maximum(np.linalg.norm(n, axis=1), 1e-12)
+
+    def update_epipolar(self, c1, r1, xy2, sigma, T_base_cam, gate_chi2=6.63,
+                        min_baseline=0.02) -> np.ndarray:
+        """Two-view constraint of tracks that have no landmark yet: the current observation
+        must lie on the epipolar line of an earlier view taken at a fused pose (camera centre
+        c1, ray r1 in odom). It needs no depth, so a quarter whose features are too young to
+        be triangulated (fast turns) still measures its rotation and direction of travel.
+        sigma: std of the line distance (normalized units). Returns the inlier mask."""
+        c1 = np.asarray(c1, float).reshape(-1, 3)
+        r1 = np.asarray(r1, float).reshape(-1, 3)
+        xy2 = np.asarray(xy2, float).reshape(-1, 2)
+        inl = np.zeros(len(c1), bool)
+        if len(c1) == 0:
+            return inl
+        p = self.kf.x[P_, 0].copy()
+        c2 = p + self.R_nom @ T_base_cam[:3, 3]
+        # a short baseline leaves the epipolar line undefined (pure rotation, standing still)
+        ok = np.linalg.norm(c1 - c2, axis=1) >= min_baseline
+        if not ok.any():
+            return inl
+        e, sharp = self.epipolar_residual(self.R_nom, p, c1, r1, xy2, T_base_cam)
+        ok &= np.isfinite(e) & (sharp > 0.1)
+        eps = 1e-6
+        H = np.zeros((len(c1), DIM))
+        for k in range(3):            # numerical Jacobian: 6 vectorised evaluations
+            d = np.zeros(3)
+            d[k] = eps
+            H[:, k] = (self.epipolar_residual(self.R_nom, p + d, c1, r1, xy2, T_base_cam)[0] - e) / eps
+            H[:, 3 + k] = (self.epipolar_residual(rotvec_to_R(d) @ self.R_nom, p, c1, r1, xy2,
+                                                  T_base_cam)[0] - e) / eps
+        S = np.einsum('ni,ij,nj->n', H, self.kf.P, H) + sigma ** 2
+        inl = ok & np.all(np.isfinite(H), axis=1) & (e ** 2 < gate_chi2 * S)
+        if not inl.any():
+            return inl
+        Hs = H[inl]
+        x_before, P_before = self.kf.x.copy(), self.kf.P.copy()
+        self.kf.update(np.zeros((int(inl.sum()), 1)), HJacobian=lambda _x: Hs,
+                       Hx=lambda _x: e[inl].reshape(-1, 1), R=np.eye(int(inl.sum())) * sigma ** 2)
+        if not self.healthy():
+            self.kf.x, self.kf.P = x_before, P_before
+            return np.zeros(len(c1), bool)
+        self._recentre()
+        self._condition()
+        return inl
+
     # ----- realign to the fused estimate --------------------------------------------------
     def set_pose(self, T_odom_base: np.ndarray, cov6: np.ndarray):
         """Replace the pose by the arbiters' fused pose N(T, cov6).

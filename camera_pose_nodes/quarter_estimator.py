@@ -4,6 +4,10 @@ ROS-free: the node converts messages (image_conversion), builds the intrinsics
 (camera_model) and calls process_image() per frame and apply_fused_pose() when the general
 arbiter's fused pose of that frame comes back. get_state()/set_state() hand the quarter
 over to another process (the coordinator's rebalancing) with bit-identical continuation.
+
+Pose: tracks with a landmark are measured by reprojection; tracks without one (too young to
+be triangulated, e.g. in fast turns) by their epipolar line to an earlier fused view, which
+fixes rotation but not distance (see README, design notes).
 """
 import math
 import time
@@ -23,6 +27,7 @@ from multicam_ego_motion.rig import CameraMount
 
 STATE_VERSION = 1
 STAGES = ('acquire', 'extract', 'track', 'pose', 'structure')
+_ROTATION_ONLY_POSITION_VARIANCE = 1.0e2   # m^2: 'position not measured', still < UNINFORMATIVE
 _TRIANGULATION_VIEWS = 5     # views per DLT: oldest, newest and evenly spaced between
 
 # name -> (default, description, min, max). The node declares its ROS parameters from this.
@@ -43,6 +48,8 @@ PARAMETERS = {
     'gate_chi2': (9.21, 'per-feature Mahalanobis gate (chi-square, 2 dof; 9.21 = 99 %)', 1.0, 100.0),
     'accel_sigma': (2.0, 'process noise: white linear acceleration (m/s^2/sqrt(Hz))', 1e-4, 100.0),
     'alpha_sigma': (2.0, 'process noise: white angular acceleration (rad/s^2/sqrt(Hz))', 1e-4, 100.0),
+    'epipolar': (True, 'also measure tracks without a landmark by their epipolar line to an earlier fused view', None, None),
+    'epipolar_min_baseline': (0.05, 'shortest camera baseline (m) for an epipolar measurement', 0.001, 10.0),
     'min_inliers': (6, 'inliers needed to report tracking (else lost)', 3, 1000),
     'parallax_deg': (2.0, 'ray angle a track needs before it is triangulated (deg)', 0.1, 45.0),
     'refine_factor': (2.0, 're-triangulate a landmark when its parallax grew by this factor', 1.1, 100.0),
@@ -70,6 +77,8 @@ class QuarterParams:
     gate_chi2: float = PARAMETERS['gate_chi2'][0]
     accel_sigma: float = PARAMETERS['accel_sigma'][0]
     alpha_sigma: float = PARAMETERS['alpha_sigma'][0]
+    epipolar: bool = PARAMETERS['epipolar'][0]
+    epipolar_min_baseline: float = PARAMETERS['epipolar_min_baseline'][0]
     min_inliers: int = PARAMETERS['min_inliers'][0]
     parallax_deg: float = PARAMETERS['parallax_deg'][0]
     refine_factor: float = PARAMETERS['refine_factor'][0]
@@ -169,6 +178,7 @@ class QuarterEstimator:
             inl = self.ekf.update(X, xy, self.sigma_uv, self.T_base_cam, self.params.gate_chi2,
                                   self.params.min_depth)
             n_inliers = int(inl.sum())
+        n_epipolar = self._epipolar_update(stamp_ns, ~has) if self.params.epipolar else 0
         if not self.ekf.healthy():
             # Cannot happen by construction (guards in the EKF); if it does, restart the
             # filter from the last fused pose rather than publish NaN.
@@ -179,18 +189,59 @@ class QuarterEstimator:
         ms['pose'] = (t4 - t3) * 1e3
         ms['structure'] = self.structure_ms    # ran when the previous fused pose came back
 
-        if len(self.landmarks) == 0:
-            state = 'initializing'
-        elif n_inliers >= self.params.min_inliers:
+        cov = self.ekf.pose_covariance
+        if n_inliers >= self.params.min_inliers:
             state = 'tracking'
+        elif n_epipolar >= self.params.min_inliers:
+            # Epipolar lines fix rotation and the direction of travel, never the distance: the
+            # position is the prediction, so report it as unknown and only the rotation counts.
+            state = 'tracking'
+            cov[:3, :] = 0.0
+            cov[:, :3] = 0.0
+            cov[:3, :3] = np.eye(3) * _ROTATION_ONLY_POSITION_VARIANCE
+        elif len(self.landmarks) == 0:
+            state = 'initializing'
         else:
             state = 'lost'
         kw = dict(n_features=len(self.tracker.ids), n_landmarks=int(has.sum()),
-                  n_inliers=n_inliers, stage_ms=ms)
+                  n_inliers=n_inliers + n_epipolar, stage_ms=ms)
         if state != 'tracking':
             return uninformative(stamp_ns, self.ekf.T_odom_base, self.source, state, **kw)
-        return PoseEstimate(stamp_ns, self.ekf.T_odom_base, self.ekf.pose_covariance,
+        return PoseEstimate(stamp_ns, self.ekf.T_odom_base, cov,
                             source=self.source, state=state, **kw)
+
+    def _epipolar_update(self, stamp_ns, without_landmark) -> int:
+        """Epipolar measurements of the tracks without a landmark (see PoseEKF.update_epipolar),
+        each against its oldest view that has a fused pose. Returns the inlier count."""
+        tr = self.tracker
+        ids, first, now = [], [], []
+        body_p = self.ekf.T_odom_base[:3, 3]
+        for i, pt in zip(tr.ids[without_landmark].tolist(), tr.pts[without_landmark]):
+            h = tr.history[i]
+            if h[-1][0] != stamp_ns:
+                continue
+            # the oldest view with a fused pose: the longest baseline, the best-defined line
+            o = next((o for o in h[:-1] if o[0] in self.fused_poses), None)
+            # The body itself must have moved: spinning in place only swings the camera on its
+            # lever arm, a baseline too short for its direction to be known from the poses.
+            if o is not None and np.linalg.norm(self.fused_poses[o[0]][:3, 3] - body_p) \
+                    >= self.params.epipolar_min_baseline:
+                ids.append(i)
+                first.append((self.fused_poses[o[0]], o[1:]))
+                now.append(pt)
+        if not ids:
+            return 0
+        Tb = np.array([f[0] for f in first])
+        R_oc, c_o = self._camera_pose(Tb)
+        xy1 = self.intrinsics.undistort_points(np.array([f[1] for f in first], float))
+        rays = bearings_odom(R_oc, xy1)
+        xy2 = self.intrinsics.undistort_points(np.array(now, float))
+        # both ends are noisy: the line distance has about sqrt(2) pixel sigmas
+        sigma = math.sqrt(2.0) * self.params.pixel_sigma / (0.5 * (self.intrinsics.fx + self.intrinsics.fy))
+        inl = self.ekf.update_epipolar(c_o, rays, xy2, sigma, self.T_base_cam,
+                                       gate_chi2=self.params.gate_chi2 * 6.63 / 9.21,
+                                       min_baseline=self.params.epipolar_min_baseline)
+        return int(inl.sum())
 
     def twist(self):
         """(v in odom, w in base_link, 6x6 covariance of [v, w]) of the last estimate."""

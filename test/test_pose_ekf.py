@@ -106,3 +106,34 @@ def test_tracks_true_pose_after_landmarks_from_fused_poses():
     assert outl_rejected >= 0.95 * outl_total
     v, w, _ = ekf.twist
     assert abs(w[2] - 0.15) < 0.03                      # yaw rate (body z) recovered
+
+
+def test_epipolar_update_corrects_rotation_without_landmarks():
+    """Tracks with no depth: only their earlier view (fused pose) and the current pixel. The
+    epipolar lines pull a wrong yaw prior back; the residual is zero at the true pose."""
+    rng = np.random.default_rng(3)
+    cam = paper_rig().camera('right')
+    T_bc = cam.T_base_cam
+    T1, T2 = true_pose(0.0), true_pose(0.5)          # ~0.25 m between the views
+    X = (T2 @ T_bc)[:3, :3] @ np.column_stack([rng.uniform(-0.6, 0.6, (60, 2)),
+                                               rng.uniform(2, 8, 60)]).T
+    X = X.T + (T2 @ T_bc)[:3, 3]
+    T_oc1, T_oc2 = T1 @ T_bc, T2 @ T_bc
+    xy1 = ((X - T_oc1[:3, 3]) @ T_oc1[:3, :3])
+    xy1 = xy1[:, :2] / xy1[:, 2:3]
+    _, xy2, _ = observe(T2, T_bc, X, rng, 0.0)
+    rays = np.column_stack([xy1, np.ones(len(X))]) @ T_oc1[:3, :3].T
+    c1 = np.tile(T_oc1[:3, 3], (len(X), 1))
+    ekf = PoseEKF()
+    e0, _ = ekf.epipolar_residual(T2[:3, :3], T2[:3, 3], c1, rays, xy2, T_bc)
+    assert np.abs(e0).max() < 1e-9
+    wrong = se3.make_T(se3.rotvec_to_R([0, 0, np.radians(1.5)]) @ T2[:3, :3], T2[:3, 3])
+    ekf.reset(wrong)
+    ekf.kf.P[:6, :6] = np.diag([0.02 ** 2] * 3 + [np.radians(3) ** 2] * 3)
+    inl = ekf.update_epipolar(c1, rays, xy2, 0.5 / F_PX, T_bc, gate_chi2=1e6)
+    assert inl.sum() == len(X)
+    yaw_err = se3.pose_error(ekf.T_odom_base, T2)[5]
+    assert abs(np.degrees(yaw_err)) < 0.15
+    # standing still: no baseline, no measurement
+    ekf.reset(T1)
+    assert not ekf.update_epipolar(c1, rays, xy2, 0.5 / F_PX, T_bc).any()

@@ -1,0 +1,68 @@
+"""Accuracy regression tests: generated scenario bags (fixed seeds) go through the whole graph
+(`ego-motion replay`, lockstep, real nodes over DDS on 2 workers) and the odometry it
+recorded (odometry.tum) is scored against the bag's /ground_truth/odom with the evaluator.
+A change that makes the figures worse than the thresholds below fails.
+
+Bags: 20 s at 8 Hz, 320 x 240, fx = 200 (the committed default bag's settings, so that what
+`make run` shows is what is tested), seed 7. The whole file replays four bags, a few minutes
+on two cores.
+"""
+from pathlib import Path
+
+import pytest
+
+from conftest import run_cli
+from multicam_ego_motion.evaluation.evaluate import evaluate_trajectories
+from multicam_ego_motion.evaluation.trajectory_io import load_trajectory
+
+SEED, DURATION_S, RATE_HZ, WIDTH, HEIGHT, FX = 7, 20, 8, 320, 240, 200
+FRAMES = DURATION_S * RATE_HZ + 1
+
+# scenario -> metric -> upper bound. The issue's targets where they are met; where not yet,
+# the bound is the figure this graph reliably reaches (lockstep replay is deterministic to
+# about 0.01 %) plus ~10 %, marked NOT MET with the target. Tighten these as accuracy improves.
+THRESHOLDS = {
+    'loop': {
+        'ate_pct': 1.7,                       # NOT MET: target 1.0 (measured 1.55)
+        'final_drift_pct': 1.6,               # NOT MET: target 1.0 (measured 1.45)
+        'rotation_drift_deg_per_m': 0.18,     # NOT MET: target 0.1 (measured 0.157)
+        'abs_scale_error_pct': 1.0,           # target (measured 0.52; the wheel's own is 2.3)
+    },
+    'corridor': {'final_drift_pct': 3.6},     # NOT MET: target 2.0 (measured 3.28)
+    'spin_then_drive': {'final_drift_pct': 6.2},   # NOT MET: target 2.0 (measured 5.64)
+    'lighting': {'final_drift_pct': 2.0,      # target (measured 1.66)
+                 'ate_sim3_rmse_m': 0.25},    # no divergence: the shape holds (measured 0.12)
+}
+
+
+def _replay(scenario: str, root: Path) -> dict:
+    bag = root / f'{scenario}_bag'
+    r = run_cli('generate', '--scenario', scenario, '--out', bag, '--seed', SEED,
+                '--duration', DURATION_S, '--rate', RATE_HZ, '--width', WIDTH, '--height', HEIGHT,
+                '--fx', FX, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    out = root / f'{scenario}_replay'
+    r = run_cli('replay', bag, '--out', out, '--workers', 2, timeout=900)
+    assert r.returncode == 0, r.stdout + r.stderr
+    est = load_trajectory(out / 'odometry.tum')
+    ref = load_trajectory(f'{bag}:/ground_truth/odom')
+    m = evaluate_trajectories(ref, est)
+    m['frames'] = len(est)
+    m['ate_pct'] = 100.0 * m['ate_rmse_m'] / m['path_length_m']
+    m['abs_scale_error_pct'] = abs(m['scale_error_pct'])
+    return m
+
+
+@pytest.fixture(scope='module')
+def metrics(tmp_path_factory):
+    root = tmp_path_factory.mktemp('accuracy')
+    return {s: _replay(s, root) for s in THRESHOLDS}
+
+
+@pytest.mark.parametrize('scenario', sorted(THRESHOLDS))
+def test_scenario_accuracy(metrics, scenario):
+    m = metrics[scenario]
+    assert m['frames'] == FRAMES, f'{scenario}: odometry for {m["frames"]} of {FRAMES} frames'
+    summary = ', '.join(f'{k} {m[k]:.3f}' for k in THRESHOLDS[scenario])
+    for key, bound in THRESHOLDS[scenario].items():
+        assert m[key] <= bound, f'{scenario}: {key} {m[key]:.3f} > {bound} ({summary})'
