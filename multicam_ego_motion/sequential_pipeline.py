@@ -55,7 +55,9 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             return
         t0 = time.perf_counter()
         cams = {}
-        for name, gray in frame.items():
+        # Rig order, as the general arbiter fuses: float sums in another order differ in the
+        # last bits, and gating decisions can amplify that over a run.
+        for name, gray in sorted(frame.items(), key=lambda kv: rig.names.index(kv[0])):
             ests = [q.process_image(frame_stamp, gray) for q in estimators[name]]
             for e in ests:
                 result.quarters[e.source].append(e)
