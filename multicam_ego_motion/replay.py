@@ -148,7 +148,7 @@ def make_link_waiter(rig, player, timeout_s=2.0):
 
 def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rate=1.0,
               use_wheel=True, ack_timeout=120.0, start_offset=0.0, duration=None,
-              migrate_every=0, rebalance=True, logger=print) -> GraphRun:
+              migrate_every=0, rebalance=True, logger=print, record_topics=None) -> GraphRun:
     """Coordinator + in-process player and recorder: one run of the graph over a bag."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -170,7 +170,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     spinner = threading.Thread(target=executor.spin, daemon=True)
-    recorder = BagRecorder(out / 'output', topics=recorded_topics(rig))
+    recorder = BagRecorder(out / 'output', topics=record_topics or recorded_topics(rig))
     received = {}
     node.create_subscription(Odometry, '/odom', lambda data: received.setdefault(
         header_stamp_ns(data), time.monotonic()), RELIABLE, raw=True)
