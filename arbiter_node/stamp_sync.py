@@ -28,10 +28,11 @@ class StampSynchronizer:
         self.dropped_late = 0
 
     def add(self, source: str, stamp_ns: int, item, now: float) -> List[Group]:
+        # Even a late estimate proves the source is alive: wait for it from the next frame on.
+        self.absent.discard(source)
         if self.last_released_ns is not None and stamp_ns <= self.last_released_ns:
             self.dropped_late += 1
             return self.poll(now)
-        self.absent.discard(source)
         self._groups.setdefault(stamp_ns, {})[source] = item
         self._first_seen.setdefault(stamp_ns, now)
         return self.poll(now)

@@ -35,3 +35,13 @@ def test_newer_complete_group_releases_older_incomplete_one():
     g = s.add('b', 20, 'B', now=0.2)
     assert [x.stamp_ns for x in g] == [10, 20]
     assert g[0].missing == ['b']
+
+
+def test_late_estimate_of_an_absent_source_makes_it_awaited_again():
+    s = StampSynchronizer(['a', 'b'], timeout_s=1.0)
+    s.add('a', 10, 'A', now=0.0)
+    s.poll(now=2.0)                            # b missed frame 10: absent
+    assert s.add('a', 20, 'A', now=2.1)[0].missing == ['b']
+    assert s.add('b', 20, 'B', now=2.2) == []  # late for 20, but alive again
+    assert s.add('a', 30, 'A', now=2.3) == []  # so frame 30 waits for b
+    assert s.add('b', 30, 'B', now=2.4)[0].items == {'a': 'A', 'b': 'B'}
