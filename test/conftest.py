@@ -60,3 +60,14 @@ class SpinningNode:
 
 # Session fixtures of the fault-injection suite (faulty bags and one replay of each).
 pytest_plugins = ['fault_replays']
+
+
+def read_bag(path):
+    """(topics {name: (type, count)}, messages [(topic, log time, message)]) read by the
+    independent `rosbags` reader, not the product's own."""
+    from rosbags.highlevel import AnyReader
+    with AnyReader([Path(path)]) as reader:
+        topics = {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
+        messages = [(c.topic, t, reader.deserialize(raw, c.msgtype))
+                    for c, t, raw in reader.messages()]
+    return topics, messages

@@ -6,7 +6,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from rosbags.highlevel import AnyReader
+from conftest import read_bag
 
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.kitti_import import import_kitti
@@ -41,14 +41,6 @@ def fake_kitti(root: Path, frames=3, calib=CALIB, poses=None):
         poses = ''.join(f'1 0 0 0 0 1 0 0 0 0 1 {float(i)}\n' for i in range(frames))
     (root / 'poses.txt').write_text(poses)
     return root
-
-
-def read_bag(path):
-    with AnyReader([Path(path)]) as reader:
-        topics = {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
-        messages = [(c.topic, t, reader.deserialize(raw, c.msgtype))
-                    for c, t, raw in reader.messages()]
-    return topics, messages
 
 
 def test_fake_sequence_converts_to_rep103(tmp_path):

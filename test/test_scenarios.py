@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from rosbags.highlevel import AnyReader
+from conftest import read_bag
 
 from multicam_ego_motion.bag.rig_bag_writer import STAMP_EPOCH_NS
 from multicam_ego_motion.errors import UserError
@@ -27,14 +27,6 @@ def loop_bag(tmp_path_factory):
     generate('loop', out, seed=3, duration=DURATION, rate=RATE, width=WIDTH, height=HEIGHT,
              progress=False)
     return out
-
-
-def read_bag(path):
-    with AnyReader([Path(path)]) as reader:
-        topics = {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
-        messages = [(c.topic, t, reader.deserialize(raw, c.msgtype))
-                    for c, t, raw in reader.messages()]
-    return topics, messages
 
 
 def stamp_ns(msg):
