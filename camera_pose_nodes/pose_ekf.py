@@ -165,15 +165,21 @@ class PoseEKF:
         zs = z_obs[inl].reshape(-1, 1)
         hs = uv[inl].reshape(-1, 1)
         Rs = np.kron(np.eye(int(inl.sum())), Rm)
+        if not self._guarded_update(zs, Hs, hs, Rs):
+            return np.zeros(len(X), bool)
+        return inl
+
+    def _guarded_update(self, z, H, h, R) -> bool:
+        """One filterpy update with fixed H and h(x); False (prediction kept) if it produced NaN."""
         x_before, P_before = self.kf.x.copy(), self.kf.P.copy()
-        self.kf.update(zs, HJacobian=lambda _x: Hs, Hx=lambda _x: hs, R=Rs)
+        self.kf.update(z, HJacobian=lambda _x: H, Hx=lambda _x: h, R=R)
         if not self.healthy():
             # A degenerate geometry produced NaN: keep the prediction rather than poison P.
             self.kf.x, self.kf.P = x_before, P_before
-            return np.zeros(len(X), bool)
+            return False
         self._recentre()
         self._condition()
-        return inl
+        return True
 
     # ----- epipolar update (tracks without a landmark) -------------------------------------
     def epipolar_residual(self, R_ob, p, c1, r1, xy2, T_base_cam):
@@ -222,14 +228,9 @@ class PoseEKF:
         if not inl.any():
             return inl
         Hs = H[inl]
-        x_before, P_before = self.kf.x.copy(), self.kf.P.copy()
-        self.kf.update(np.zeros((int(inl.sum()), 1)), HJacobian=lambda _x: Hs,
-                       Hx=lambda _x: e[inl].reshape(-1, 1), R=np.eye(int(inl.sum())) * sigma ** 2)
-        if not self.healthy():
-            self.kf.x, self.kf.P = x_before, P_before
+        if not self._guarded_update(np.zeros((int(inl.sum()), 1)), Hs, e[inl].reshape(-1, 1),
+                                    np.eye(int(inl.sum())) * sigma ** 2):
             return np.zeros(len(c1), bool)
-        self._recentre()
-        self._condition()
         return inl
 
     # ----- realign to the fused estimate --------------------------------------------------
