@@ -152,6 +152,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
     """Coordinator + in-process player and recorder: one run of the graph over a bag."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
 
     from multicam_ego_motion.bag.header_stamp import header_stamp_ns
     from multicam_ego_motion.bag.player import BagPlayer, PlayOptions
@@ -165,7 +166,9 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
     coordinator = Coordinator(rig, Path(rig_file).resolve(), Path(params).resolve(), workers=workers,
                               overrides=graph_overrides(lockstep, use_wheel), log_dir=out / 'logs',
                               rebalance=rebalance, migrate_every=migrate_every, logger=logger)
-    rclpy.init()
+    # No rclpy signal handlers: on Ctrl-C they invalidate the context under the spinning
+    # thread; Python's KeyboardInterrupt reaches the finally below, which closes in order.
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node('ego_motion_replay')
     executor = SingleThreadedExecutor()
     executor.add_node(node)

@@ -100,10 +100,14 @@ class BagRecorder:
                 self.writer.write_serialized(topic, typename, data, stamp)
 
     def wait_for_topics(self, timeout_s: float) -> bool:
-        """True once every topic named in `topics` is subscribed (discovery needs spinning)."""
+        """True once every topic named in `topics` is subscribed and matched to a publisher.
+
+        Created is not enough: a reliable, volatile subscription misses what is published
+        before discovery matches it (discovery needs spinning)."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            if all(self._subscriptions.get(t) is not None for t in self.topics):
+            subs = [self._subscriptions.get(t) for t in self.topics]
+            if all(s is not None and s.get_publisher_count() > 0 for s in subs):
                 return True
             time.sleep(0.05)
         return False
