@@ -46,7 +46,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
     info_topic = {c.camera_info_topic: c for c in present}
     estimators = {}   # camera name -> [QuarterEstimator x4]
     result = SequentialResult()
-    frame = {}        # camera name -> gray image of the current stamp
+    frame = {}        # camera name -> image message of the current stamp
     frame_stamp = None
     wheel = None
 
@@ -57,7 +57,10 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
         cams = {}
         # Rig order, as the general arbiter fuses: float sums in another order differ in the
         # last bits, and gating decisions can amplify that over a run.
-        for name, gray in sorted(frame.items(), key=lambda kv: rig.names.index(kv[0])):
+        for name, msg in sorted(frame.items(), key=lambda kv: rig.names.index(kv[0])):
+            if name not in estimators:
+                continue
+            gray = image_msg_to_gray(msg, expected_size=estimators[name][0].image_size)
             ests = [q.process_image(frame_stamp, gray) for q in estimators[name]]
             for e in ests:
                 result.quarters[e.source].append(e)
@@ -95,8 +98,9 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             if max_frames and len(result.fused) >= max_frames:
                 break
         frame_stamp = stamp
-        if cam.name in estimators:
-            frame[cam.name] = image_msg_to_gray(msg, expected_size=estimators[cam.name][0].image_size)
+        # Converted when the frame is complete: a camera's CameraInfo may follow its image
+        # (the graph's quarter nodes hold such an image until the CameraInfo arrives).
+        frame[cam.name] = msg
     if not (max_frames and len(result.fused) >= max_frames):
         flush()
     return result
