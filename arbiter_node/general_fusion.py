@@ -7,7 +7,7 @@ Scale: the rig-scale observer (rig_scale) is fed when per-camera translation dir
 available and `scale_observed` reports it; until it is wired to correct anything, metric
 scale comes from the wheel prior (when configured) and from the landmarks.
 """
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Dict, List, Mapping, Optional, Tuple
 
 import numpy as np
@@ -29,6 +29,8 @@ PARAMETERS = {
     'median_max_rotation_rad': (0.2, 'absolute gate: a camera rotated more than this from the median is rejected (rad)', 0.001, 3.15),
     'median_use_prior': (True, 'with fewer than 3 cameras, let the EKF prediction vote in the median', None, None),
     'camera_correlation': (0.0, 'assumed error correlation between cameras (shared fed-back landmarks); inflates the fused covariance by 1+(n-1)rho', 0.0, 1.0),
+    'camera_floor_std_m': (0.005, 'added to every camera estimate: position std of the landmark-map error the quarters leave out (m)', 0.0, 10.0),
+    'camera_floor_std_rad': (0.002, 'added to every camera estimate: rotation std of the landmark-map error (rad)', 0.0, 1.0),
     'ekf_gate_chi2': (CHI2_6DOF_999, 'chi-square (6 dof) gate of the fused camera pose against the EKF prediction', 1.0, 1e6),
     'max_consecutive_rejections': (5, 'after this many gated-out fused poses in a row, re-initialise the EKF on the cameras', 1, 1000),
     'accel_noise': (0.25, 'EKF process noise: white linear acceleration, body frame ((m/s^2)^2/Hz)', 1e-6, 100.0),
@@ -103,6 +105,17 @@ class GeneralFusion:
             max_relative_std=self.params['scale_max_relative_std'], names=names)
         return self.last_scale
 
+    def _with_floor(self, estimates: Mapping[str, PoseEstimate]) -> Dict[str, PoseEstimate]:
+        # Quarters treat their landmarks as exact, so a camera's covariance omits the map's
+        # own error (landmarks come from earlier fused poses): without this floor, cameras
+        # that agree to a few centimetres look thousands of sigmas apart after a turn.
+        fm, fr = self.params['camera_floor_std_m'], self.params['camera_floor_std_rad']
+        if fm == 0.0 and fr == 0.0:
+            return dict(estimates)
+        floor = np.diag([fm * fm] * 3 + [fr * fr] * 3)
+        return {n: (replace(e, covariance=e.covariance + floor) if e.informative else e)
+                for n, e in estimates.items()}
+
     # -------------------------------------------------------------- per frame
     def process(self, stamp_ns: int, camera_estimates: Mapping[str, PoseEstimate],
                 wheel_twist: Optional[Tuple[np.ndarray, np.ndarray]] = None,
@@ -116,6 +129,7 @@ class GeneralFusion:
         T_prev = self.last_T
 
         prior = (self.ekf.T, self.ekf.pose_covariance) if p['median_use_prior'] and self.has_tracked else None
+        camera_estimates = self._with_floor(camera_estimates)
         med = median_filter(dict(camera_estimates), p['median_mahalanobis_gate'], p['median_max_translation_m'],
                             p['median_max_rotation_rad'], prior)
         out_rejected = dict(med.rejected)

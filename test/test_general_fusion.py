@@ -119,3 +119,24 @@ def test_rig_scale_hook_reports_scale_observed():
     assert f.scale_ratio == pytest.approx(float(t_ekf @ g.last_scale.t) / float(t_ekf @ t_ekf), rel=0.1)
     g.reset()
     assert g.process(0, {}).state == 'initializing'
+
+
+def test_camera_floor_keeps_overconfident_but_agreeing_cameras():
+    # Four cameras 1-2 cm / 0.1 deg apart, each claiming 1 mm / 0.01 deg: what quarters report
+    # after a turn, since they treat their landmarks as exact. Without the floor the median
+    # rejects every one of them (the fusion would dead-reckon); with it all are used.
+    tight = np.diag([1e-3] * 3 + [1.7e-4] * 3) ** 2
+    offsets = {'front': [0.01, 0, 0, 0, 0, 0.0017], 'left': [-0.01, 0.01, 0, 0, 0, 0],
+               'back': [0, -0.015, 0, 0, 0, -0.0017], 'right': [0.015, 0.005, 0, 0, 0, 0.001]}
+    ests = {n: PoseEstimate(DT_NS, se3.perturb(np.eye(4), d), tight, source=n, state='tracking')
+            for n, d in offsets.items()}
+    bare = GeneralFusion(RIG, {'camera_floor_std_m': 0.0, 'camera_floor_std_rad': 0.0})
+    floored = GeneralFusion(RIG)
+    assert bare.process(DT_NS, ests).cameras_used == []
+    f = floored.process(DT_NS, ests)
+    assert sorted(f.cameras_used) == sorted(RIG.names)
+    # and a camera 20 cm off is still rejected
+    ests['left'] = PoseEstimate(DT_NS, se3.perturb(np.eye(4), [0.2, 0, 0, 0, 0, 0]), tight,
+                                source='left', state='tracking')
+    f = GeneralFusion(RIG).process(DT_NS, ests)
+    assert 'left' in f.cameras_rejected and 'left' not in f.cameras_used
