@@ -18,6 +18,7 @@ SUBCOMMANDS = {
     'evaluate': ('multicam_ego_motion.evaluation.evaluate', 'score an estimate against ground truth'),
     'replay': ('multicam_ego_motion.replay', 'run the whole graph on a bag and score it'),
     'bench': ('multicam_ego_motion.bench', 'measure sequential vs parallel timing'),
+    'ablation': ('multicam_ego_motion.ablation', 'fused vs single cameras vs single quarters on a bag'),
 }
 
 

@@ -29,7 +29,10 @@ class SequentialResult:
 
 
 def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: dict = None,
-                   use_wheel: bool = True, max_frames: int = None, progress=None) -> SequentialResult:
+                   use_wheel: bool = True, max_frames: int = None, progress=None,
+                   quarters=(1, 2, 3, 4)) -> SequentialResult:
+    """`quarters`: which quarters of every camera run (all four in the graph; fewer to show
+    what one quarter alone achieves)."""
     reader = Rosbag2Reader(bag_path)
     present = [c for c in rig.cameras if c.image_topic in reader.topics]
     if not present:
@@ -89,7 +92,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             if cam.name not in estimators:
                 intr = intrinsics_from_msg(msg, cam.name)
                 estimators[cam.name] = [QuarterEstimator(cam, q, intr, qp, (msg.width, msg.height))
-                                        for q in range(1, 5)]
+                                        for q in quarters]
             continue
         cam = by_topic[topic]
         stamp = stamp_to_ns(msg.header.stamp)
