@@ -204,6 +204,11 @@ def main(argv=None):
     ap.add_argument('--params-file')
     args = ap.parse_args(argv)
     _die_with_parent()
+    # The workers are the parallelism (like OPENBLAS_NUM_THREADS=1 from the coordinator):
+    # OpenCV's own pool only oversubscribes the cores, and its work would escape the
+    # nodes' stage times (CPU time of the calling thread), which are the costs balanced.
+    import cv2
+    cv2.setNumThreads(1)
     # Import the node modules before saying hello: a spare that takes over a dead worker
     # then only creates nodes (restore within 2 s even on a loaded machine).
     for kind in ('quarter', 'camera_arbiter', 'general_arbiter'):
