@@ -65,7 +65,7 @@ class CoordinatorStats:
 
 class Coordinator:
     def __init__(self, rig, rig_file, params_file=None, workers: int = None, overrides=None,
-                 log_dir=None, env=None, rebalance: bool = True, threshold: float = 0.15,
+                 log_dir=None, env=None, rebalance: bool = True, threshold: float = 0.10,
                  hysteresis_frames: int = 10, migrate_every: int = 0, spare: bool = True,
                  logger=print):
         self.rig = rig
@@ -397,8 +397,11 @@ class Coordinator:
             return
         self._last_rebalance_frame = frame
         self.stats.rebalances += 1
-        self.say(f'rebalance at frame {frame}: {d.reason}; imbalance {current.imbalance:.2f} -> '
-                 f'{d.proposal.imbalance:.2f}; {len(moves)} move(s)')
+        loads = lambda a: '/'.join(f'{a.load_ms.get(w, 0.0):.1f}' for w in range(self.n_workers))
+        self.say(f'rebalance at frame {frame}: {d.reason}; worker loads {loads(current)} -> '
+                 f'{loads(d.proposal)} ms, imbalance {current.imbalance:.2f} -> '
+                 f'{d.proposal.imbalance:.2f}; {len(moves)} move(s): '
+                 + ', '.join(f'{k} -> worker {w}' for k, w in moves))
         for key, w in moves:
             self.migrate(key, w)
         self.allocation = d.proposal
