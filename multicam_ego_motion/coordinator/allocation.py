@@ -287,6 +287,14 @@ class RebalanceDecision:
     proposal: Optional[Allocation] = None
 
 
+def frame_gain(quarter_costs, current: Allocation, threshold: float = 0.10, min_gain_ms: float = 1.0,
+               nf=None, min_f=None, **cost_kw):
+    """(worth moving, current makespan, best proposal's makespan) for one frame's costs."""
+    cur = max(evaluate_loads(current, quarter_costs, **cost_kw).values())
+    best = best_proposal(current, quarter_costs, nf=nf, min_f=min_f, **cost_kw).makespan_ms
+    return best > 0 and cur > best * (1.0 + threshold) and cur - best > min_gain_ms, cur, best
+
+
 def should_rebalance(costs_history: Sequence[Mapping[str, Sequence[float]]], current: Allocation,
                      threshold: float = 0.10, hysteresis_frames: int = 10,
                      nf_history: Optional[Sequence[Mapping[str, Sequence[int]]]] = None, min_f=None,
@@ -301,11 +309,9 @@ def should_rebalance(costs_history: Sequence[Mapping[str, Sequence[float]]], cur
     over = 0
     cur = best = 0.0
     for i, qc in enumerate(costs_history[-hysteresis_frames:]):
-        cur = max(evaluate_loads(current, qc, **cost_kw).values())
         nf = nf_history[-hysteresis_frames:][i] if nf_history else None
-        best = best_proposal(current, qc, nf=nf, min_f=min_f, **cost_kw).makespan_ms
-        if best > 0 and cur > best * (1.0 + threshold) and cur - best > min_gain_ms:
-            over += 1
+        gain, cur, best = frame_gain(qc, current, threshold, min_gain_ms, nf=nf, min_f=min_f, **cost_kw)
+        over += gain
     if over < hysteresis_frames:
         return RebalanceDecision(False, f'gain above {threshold:.0%} in {over}/{hysteresis_frames} frames',
                                  cur, best, over)
