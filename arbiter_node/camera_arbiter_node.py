@@ -45,11 +45,16 @@ class CameraArbiterNode(Node):
         for s in sources:
             self.create_subscription(PoseWithCovarianceStamped, f'{s}/pose',
                                      lambda m, s=s: self.on_quarter(s, m), RELIABLE)
-        self.create_timer(POLL_PERIOD_S, lambda: self.release(self.sync.poll(time.monotonic())))
+        self.poll_timer = self.create_timer(POLL_PERIOD_S, self.poll)
 
     def on_quarter(self, source, msg):
         est = msg_to_estimate(msg, source=f'{self.camera}/{source}')
         self.release(self.sync.add(source, est.stamp_ns, est, time.monotonic()))
+
+    def poll(self):
+        """Sync timeouts; called every POLL_PERIOD_S by the node's own timer, or by its
+        worker's one timer for all its nodes (worker.py)."""
+        self.release(self.sync.poll(time.monotonic()))
 
     def release(self, groups):
         for g in groups:

@@ -72,7 +72,7 @@ class GeneralArbiterNode(Node):
         if p['use_wheel_odometry']:
             self.create_subscription(Odometry, p['wheel_odometry_topic'], self.on_wheel, RELIABLE)
         self.create_service(Trigger, '~/reset', self.on_reset)
-        self.create_timer(POLL_PERIOD_S, lambda: self.release(self.sync.poll(time.monotonic())))
+        self.poll_timer = self.create_timer(POLL_PERIOD_S, self.poll)
         self.get_logger().info(f'fusing cameras {", ".join(self.rig.names)}')
 
     def on_wheel(self, msg: Odometry):
@@ -102,6 +102,11 @@ class GeneralArbiterNode(Node):
         response.message = 'general arbiter reset: odometry restarts at the origin'
         self.get_logger().warn(response.message)
         return response
+
+    def poll(self):
+        """Sync timeouts; called every POLL_PERIOD_S by the node's own timer, or by its
+        worker's one timer for all its nodes (worker.py)."""
+        self.release(self.sync.poll(time.monotonic()))
 
     def release(self, groups):
         for g in groups:
