@@ -60,12 +60,15 @@ class QuarterNode(Node):
         self.last_processed_ns = None
         self.last_fused_ns = None
         self.on_frame_done = None       # hook(node) after a fused pose was applied (snapshots)
+        # hook(stamp, DiagnosticStatus) instead of publishing: a worker batches the statuses
+        # of its quarters into one /diagnostics message per frame (worker.py)
+        self.diag_sink = None
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'pose', RELIABLE)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         self.create_subscription(Image, self.camera.image_topic, self.on_image, image_qos(p['image_qos']))
         self.create_subscription(CameraInfo, self.camera.camera_info_topic, self.on_info, RELIABLE)
         self.create_subscription(PoseWithCovarianceStamped, p['fused_pose_topic'], self.on_fused, RELIABLE)
-        self.create_timer(POLL_PERIOD_S, self.drain)
+        self.poll_timer = self.create_timer(POLL_PERIOD_S, self.poll)
         self.get_logger().info(f'{self.source}: waiting for {self.camera.image_topic}')
 
     # --- inputs -------------------------------------------------------------------------
@@ -105,6 +108,11 @@ class QuarterNode(Node):
         self.drain()
 
     # --- processing ---------------------------------------------------------------------
+    def poll(self):
+        """Timeouts (feedback, missing CameraInfo); called every POLL_PERIOD_S by the node's
+        own timer, or by its worker's one timer for all its nodes (worker.py)."""
+        self.drain()
+
     def ready_for_next(self, first_wait) -> bool:
         if self.last_processed_ns is None:
             return True
@@ -182,8 +190,12 @@ class QuarterNode(Node):
             values.update({f'{k}_ms': float(v) for k, v in est.stage_ms.items()})
         if stamp is None:
             stamp = self.get_clock().now().to_msg()
-        self.pub_diag.publish(diagnostics.array(stamp, [diagnostics.status(
-            f'ego_motion/{self.source}', level, message, values, hardware_id=self.camera.name)]))
+        status = diagnostics.status(f'ego_motion/{self.source}', level, message, values,
+                                    hardware_id=self.camera.name)
+        if self.diag_sink is not None:
+            self.diag_sink(stamp, status)
+        else:
+            self.pub_diag.publish(diagnostics.array(stamp, [status]))
 
 
 def main(args=None):

@@ -114,6 +114,19 @@ def peak_rss_kb(pids) -> int:
     return total
 
 
+def cpu_seconds(pids) -> float:
+    """User + system CPU time [s] of live processes (this one included if in pids)."""
+    tick = os.sysconf('SC_CLK_TCK')
+    total = 0.0
+    for pid in pids:
+        try:
+            fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / tick
+        except (OSError, ValueError, IndexError):
+            pass
+    return total
+
+
 @dataclass
 class GraphRun:
     counts: dict
@@ -123,6 +136,10 @@ class GraphRun:
     odom_received: Dict[int, float] = field(default_factory=dict)   # stamp -> monotonic s
     peak_rss_kb: int = 0
     coordinator: object = None
+    # CPU time [s] used while playing: the workers (the graph) and this process (player,
+    # recorder, coordinator). On a shared machine, wall time measures the neighbours too.
+    cpu_workers_s: float = 0.0
+    cpu_replay_s: float = 0.0
 
 
 def make_link_waiter(rig, player, timeout_s=2.0):
@@ -197,9 +214,12 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
             health_check=coordinator.check_alive))
         coordinator.link_waiter = make_link_waiter(rig, player)
         coordinator.on_restored.append(lambda w: player.request_republish())
+        workers = coordinator.worker_pids()
+        cpu0 = cpu_seconds(workers), cpu_seconds([os.getpid()])
         t_play = time.monotonic()
         result = player.play(node)
         wall = time.monotonic() - t_play
+        cpu1 = cpu_seconds(workers), cpu_seconds([os.getpid()])
         time.sleep(0.5 if lockstep else 1.0)  # let the last estimates reach the recorder
         coordinator.check_alive()
         peak = peak_rss_kb(coordinator.worker_pids() + [os.getpid()])
@@ -213,7 +233,8 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
         coordinator.stop()
         node.destroy_node()
         rclpy.try_shutdown()
-    return GraphRun(counts, result, wall, time.monotonic() - t_start, received, peak, coordinator)
+    cpu = (cpu1[0] - cpu0[0], cpu1[1] - cpu0[1]) if result is not None else (0.0, 0.0)
+    return GraphRun(counts, result, wall, time.monotonic() - t_start, received, peak, coordinator, *cpu)
 
 
 def run(args) -> int:

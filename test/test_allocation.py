@@ -2,7 +2,8 @@ import math
 
 import pytest
 
-from multicam_ego_motion.coordinator.allocation import allocate, evaluate_loads, should_rebalance
+from multicam_ego_motion.coordinator.allocation import (allocate, evaluate_loads, moves_between, refine, relabel,
+                                                        should_rebalance)
 
 CAMS4 = {'front': [4, 3, 2, 1], 'left': [3, 3, 3, 3], 'back': [1, 1, 1, 1], 'right': [2, 2, 2, 2]}
 
@@ -124,11 +125,13 @@ def test_one_camera_and_eight_cameras():
 
 
 def test_should_rebalance_hysteresis():
-    cur = allocate(CAMS4, 4)
-    hist_same = [CAMS4] * 10
-    assert not should_rebalance(hist_same, cur, 0.15, 10).rebalance
+    even = {c: [2, 2, 2, 2] for c in CAMS4}
+    assert not should_rebalance([even] * 10, allocate(even, 4), 0.15, 10).rebalance
+    assert not should_rebalance([even] * 10, allocate(even, 2), 0.10, 10).rebalance
     shifted = {'front': [10, 10, 10, 10], 'left': [1, 1, 1, 1], 'back': [1, 1, 1, 1], 'right': [1, 1, 1, 1]}
-    alloc8 = allocate(CAMS4, 5)   # with 8 the floor rule gives every camera 2 workers whatever the costs
+    # balanced for CAMS4 (with 8 the floor rule gives every camera 2 workers whatever the costs)
+    alloc8 = refine(allocate(CAMS4, 5), CAMS4, max_moves=16)
+    assert not should_rebalance([CAMS4] * 10, alloc8, 0.15, 10).rebalance
     d = should_rebalance([shifted] * 10, alloc8, 0.15, 10)
     assert d.rebalance and d.proposal is not None and d.proposal.makespan_ms < d.current_makespan_ms
     # one slow frame among normal ones: no migration
@@ -136,3 +139,43 @@ def test_should_rebalance_hysteresis():
     assert not d.rebalance and '1/10' in d.reason
     assert not should_rebalance([shifted] * 3, alloc8, 0.15, 10).rebalance   # not enough history
     assert max(evaluate_loads(alloc8, shifted).values()) > alloc8.makespan_ms
+
+
+# Bare wall on two workers: the left camera's cost falls from ~24 to ~7 ms per frame
+# (measured CPU times, sequential pipeline); whole cameras cannot balance 24 + 24 / 24 + 7.
+TEXTURED = {c: [6.0, 6.0, 6.0, 6.0] for c in ('front', 'left', 'back', 'right')}
+BARE_LEFT = dict(TEXTURED, left=[1.75] * 4)
+
+
+def test_refine_moves_one_quarter_when_whole_cameras_cannot_balance():
+    start = allocate(TEXTURED, 2)
+    assert start.case == 'cameras' and start.imbalance < 0.01
+    left_w = start.worker_of('left/q1')
+    # whole cameras: 48 / 31 whatever the pairing
+    assert allocate(BARE_LEFT, 2).makespan_ms == pytest.approx(max(evaluate_loads(start, BARE_LEFT).values()), abs=0.6)
+    r = refine(start, BARE_LEFT)
+    moved = moves_between(start, r)
+    assert len(moved) == 1 and moved[0].endswith(('/q1', '/q2', '/q3', '/q4'))
+    assert r.worker_of(moved[0]) == left_w
+    assert r.makespan_ms < 0.9 * max(evaluate_loads(start, BARE_LEFT).values())
+    d = should_rebalance([BARE_LEFT] * 10, start, 0.10, 10)
+    assert d.rebalance and moves_between(start, d.proposal) == moved
+    # texture again: the quarter goes back (one move), then nothing more to gain
+    d2 = should_rebalance([TEXTURED] * 10, d.proposal, 0.10, 10)
+    assert d2.rebalance and len(moves_between(d.proposal, d2.proposal)) == 1
+    assert not should_rebalance([TEXTURED] * 10, d2.proposal, 0.10, 10).rebalance
+
+
+def test_refine_stops_when_no_move_helps_and_skips_arbiters():
+    a = allocate(TEXTURED, 2)
+    assert moves_between(a, refine(a, TEXTURED)) == []
+    r = refine(allocate(CAMS4, 3), CAMS4)
+    assert all('/q' in n for n in moves_between(allocate(CAMS4, 3), r))
+
+
+def test_relabel_keeps_nodes_in_place():
+    a = allocate(CAMS4, 2)
+    swapped = type(a)({0: a.workers[1], 1: a.workers[0]}, a.chunks, {0: a.load_ms[1], 1: a.load_ms[0]},
+                      a.case, a.cameras, 2)
+    assert len(moves_between(a, swapped)) > 10
+    assert moves_between(a, relabel(swapped, a)) == []

@@ -53,6 +53,9 @@ class BagRecorder:
             raise UserError('record: name the topics with --topics, or use --all')
         self.writer = Rosbag2Writer(out)
         self._lock = threading.Lock()
+        # discover() runs from attach() on the caller's thread and from the timer on the
+        # executor's: without this, both could subscribe the same topic (every message twice).
+        self._discover_lock = threading.Lock()
         self._subscriptions = {}  # topic -> Subscription
         self._node = None
         self._timers = []
@@ -66,6 +69,10 @@ class BagRecorder:
 
     def discover(self):
         """Subscribe to every wanted topic that now has a publisher."""
+        with self._discover_lock:
+            self._discover()
+
+    def _discover(self):
         from multicam_ego_motion.bag.message_types import message_class
         from multicam_ego_motion.bag.topic_qos import subscribing_qos
         node = self._node

@@ -21,6 +21,7 @@ its watchdog thread, both alive as long as the coordinator: PR_SET_PDEATHSIG fir
 spawning *thread* ends.
 """
 import itertools
+from collections import deque
 import os
 import subprocess
 import sys
@@ -32,7 +33,8 @@ from pathlib import Path
 from typing import Callable, Dict, List, Optional
 
 from multicam_ego_motion.coordinator import control
-from multicam_ego_motion.coordinator.allocation import Allocation, allocate, evaluate_loads, should_rebalance
+from multicam_ego_motion.coordinator.allocation import (Allocation, allocate, evaluate_loads, frame_gain,
+                                                        should_rebalance)
 from multicam_ego_motion.coordinator.cost_monitor import CostMonitor
 from multicam_ego_motion.coordinator.graph_spec import graph_nodes
 from multicam_ego_motion.errors import UserError
@@ -65,7 +67,7 @@ class CoordinatorStats:
 
 class Coordinator:
     def __init__(self, rig, rig_file, params_file=None, workers: int = None, overrides=None,
-                 log_dir=None, env=None, rebalance: bool = True, threshold: float = 0.15,
+                 log_dir=None, env=None, rebalance: bool = True, threshold: float = 0.10,
                  hysteresis_frames: int = 10, migrate_every: int = 0, spare: bool = True,
                  logger=print):
         self.rig = rig
@@ -103,6 +105,11 @@ class Coordinator:
         self._dead_cond = threading.Condition()
         self._stopping = False
         self._last_rebalance_frame = -10 ** 9
+        # Per closed frame, against the placement of the time: was a move worth it? Kept as
+        # frames close (the executor thread) so that the lockstep between-frames hook only
+        # looks at flags (the full decision costs ~3 ms of Python per frame).
+        self._placement_version = 0
+        self._gains = deque(maxlen=hysteresis_frames)
         self._forced = 0
         self._listener = None
         self._ros_node = None
@@ -353,6 +360,7 @@ class Coordinator:
                 self.link_waiter(spec, 'attached')
             t.append(time.monotonic())
             self.placement[key] = dst
+            self._placement_version += 1
             self.stats.migrations += 1
             self.say(f'moved {key}: worker {src} -> {dst} in {1e3 * (t[-1] - t[0]):.0f} ms (detach, unlink, '
                      'attach, link: ' + ', '.join(f'{1e3 * (b - a):.0f}' for a, b in zip(t, t[1:])) + ' ms)')
@@ -386,6 +394,10 @@ class Coordinator:
         frame = self.costs.frames
         if frame - self._last_rebalance_frame < 2 * self.hysteresis_frames:
             return                  # let the costs settle after a move
+        flags = list(self._gains)
+        if len(flags) < self.hysteresis_frames or not all(
+                ok and version == self._placement_version for version, ok in flags):
+            return
         current = self.current_allocation()
         d = should_rebalance(list(self.costs.history), current, threshold=self.threshold,
                              hysteresis_frames=self.hysteresis_frames, **self._cost_kw())
@@ -397,8 +409,11 @@ class Coordinator:
             return
         self._last_rebalance_frame = frame
         self.stats.rebalances += 1
-        self.say(f'rebalance at frame {frame}: {d.reason}; imbalance {current.imbalance:.2f} -> '
-                 f'{d.proposal.imbalance:.2f}; {len(moves)} move(s)')
+        loads = lambda a: '/'.join(f'{a.load_ms.get(w, 0.0):.1f}' for w in range(self.n_workers))
+        self.say(f'rebalance at frame {frame}: {d.reason}; worker loads {loads(current)} -> '
+                 f'{loads(d.proposal)} ms, imbalance {current.imbalance:.2f} -> '
+                 f'{d.proposal.imbalance:.2f}; {len(moves)} move(s): '
+                 + ', '.join(f'{k} -> worker {w}' for k, w in moves))
         for key, w in moves:
             self.migrate(key, w)
         self.allocation = d.proposal
@@ -437,9 +452,17 @@ class Coordinator:
         if closed:
             self._publish_diag(msg.header.stamp)
 
+    def _note_gain(self, current: Allocation, version: int):
+        if not self.rebalance_enabled or not self.costs.measured:
+            return
+        ok, _, _ = frame_gain(self.costs.quarter_costs(), current, self.threshold, **self._cost_kw())
+        self._gains.append((version, ok))
+
     def _publish_diag(self, stamp):
         from multicam_ego_motion import diagnostics
+        version = self._placement_version
         a = self.current_allocation()
+        self._note_gain(a, version)
         values = {'workers': self.n_workers, 'imbalance': float(a.imbalance),
                   'makespan_ms': float(a.makespan_ms), 'migrations': self.stats.migrations,
                   'rebalances': self.stats.rebalances, 'restarts': self.stats.restarts}

@@ -34,7 +34,8 @@ DETACH_IDLE_TIMEOUT_S = 2.0
 
 
 
-QUARTER_SNAPSHOT_EVERY = 5   # frames between state snapshots of a quarter node
+QUARTER_SNAPSHOT_EVERY = 5
+NODE_POLL_S = 0.1            # the nodes' own POLL_PERIOD_S   # frames between state snapshots of a quarter node
 
 def _die_with_parent():
     try:
@@ -57,10 +58,31 @@ def node_class(kind: str):
 
 
 def create_node(spec: dict, params_file: str = None):
+    """The node of a spec, lean: rclpy's SingleThreadedExecutor rebuilds its wait set over
+    every entity of every node of the worker before each callback, and each rclpy node
+    brings seven services of its own (six parameter services and get_type_description):
+    with 21 nodes those were most of the entities walked ~160 times a frame. Parameters
+    still come from the params file and the overrides; they are only not served."""
     cli_args = ['--ros-args', '--params-file', params_file] if params_file else None
     overrides = [Parameter(k, value=v) for k, v in spec['parameters'].items()]
+    overrides.append(Parameter('start_type_description_service', value=False))
     return node_class(spec['kind'])(namespace=spec['namespace'], parameter_overrides=overrides,
-                                    cli_args=cli_args)
+                                    cli_args=cli_args, start_parameter_services=False)
+
+
+def strip_event_handlers(node, keep=lambda topic: topic.endswith('/image_raw')):
+    """Remove the QoS event handlers rclpy gives every publisher and subscription (they
+    log incompatible-QoS warnings) except on `keep` topics. Each is a waitable that the
+    SingleThreadedExecutor adds to its wait set, in Python, before every wait: with 21 nodes
+    they were most of an idle worker's CPU. The graph's own topics are all reliable and
+    ours; the camera images (sensor-data QoS vs a driver's) keep theirs."""
+    for ent in list(node.publishers) + list(node.subscriptions):
+        if keep(ent.topic_name):
+            continue
+        for h in ent.event_handlers:
+            node.remove_waitable(h)
+            h.destroy()
+        ent.event_handlers = []
 
 
 def linked(node) -> bool:
@@ -83,13 +105,48 @@ class Worker:
         self.deferred = []              # (predicate, action, deadline): waits off the executor
         self.hosted = {}                # key -> node
         self.frames_done = {}           # key -> frames finished (snapshot cadence)
-        self.node = rclpy.create_node(f'ego_motion_worker_{index}' if index >= 0 else f'ego_motion_worker_spare_{os.getpid()}')
+        self.node = rclpy.create_node(
+            f'ego_motion_worker_{index}' if index >= 0 else f'ego_motion_worker_spare_{os.getpid()}',
+            start_parameter_services=False,
+            parameter_overrides=[Parameter('start_type_description_service', value=False)])
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
         # The reader thread only queues; nodes are created and destroyed in the executor.
         self.wake = self.node.create_guard_condition(self.serve)
         self.ticker = self.node.create_timer(0.005, self.poll_deferred)
         self.ticker.cancel()            # runs only while something is deferred
+        # One timer polls every hosted node's timeouts (each node's own timer is removed):
+        # 21 timers at 10 Hz were ~200 executor wake-ups a second, each a wait-set rebuild.
+        self.poller = self.node.create_timer(NODE_POLL_S, self.poll_nodes)
+        # The quarters' /diagnostics statuses, batched per frame stamp: one message per
+        # worker and frame instead of one per quarter (a publish to the other processes'
+        # subscribers, the recorder's and the coordinator's, cost ~0.3-2 ms of CPU here).
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        from multicam_ego_motion.qos import RELIABLE
+        self.diag_pub = self.node.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
+        self.diag_batches = {}          # (sec, nanosec) -> (stamp, [DiagnosticStatus])
+        strip_event_handlers(self.node)
+
+    def poll_nodes(self):
+        for node in list(self.hosted.values()):
+            node.poll()
+        self.flush_diagnostics()
+
+    def collect_diagnostic(self, stamp, status):
+        key = (stamp.sec, stamp.nanosec)
+        batch = self.diag_batches.setdefault(key, (stamp, []))[1]
+        batch.append(status)
+        quarters = {f'ego_motion/{k}' for k, n in self.hosted.items() if getattr(n, 'diag_sink', None)}
+        if quarters <= {s.name for s in batch}:
+            self.flush_diagnostics(key)
+
+    def flush_diagnostics(self, key=None):
+        """Publish the batch of `key` (all batches when None: the poll timer's stragglers)."""
+        from multicam_ego_motion import diagnostics
+        for k in ([key] if key is not None else sorted(self.diag_batches)):
+            stamp, statuses = self.diag_batches.pop(k)
+            self.diag_pub.publish(diagnostics.array(stamp, statuses))
 
     def send(self, msg):
         with self.send_lock:
@@ -156,6 +213,10 @@ class Worker:
             return
         if hasattr(node, 'get_state'):
             node.on_frame_done = lambda n, key=key: self.snapshot(key, n)
+        node.destroy_timer(node.poll_timer)       # poll_nodes() polls it
+        if hasattr(node, 'diag_sink'):
+            node.diag_sink = self.collect_diagnostic
+        strip_event_handlers(node)
         self.hosted[key] = node
         self.executor.add_node(node)
         # Which process hosts what: read by people after a crash, and by the fault tests.
@@ -177,6 +238,7 @@ class Worker:
             return
 
         def done(idle):
+            self.flush_diagnostics()
             state = node.get_state() if hasattr(node, 'get_state') else None
             self.executor.remove_node(node)
             node.destroy_node()
@@ -204,6 +266,11 @@ def main(argv=None):
     ap.add_argument('--params-file')
     args = ap.parse_args(argv)
     _die_with_parent()
+    # The workers are the parallelism (like OPENBLAS_NUM_THREADS=1 from the coordinator):
+    # OpenCV's own pool only oversubscribes the cores, and its work would escape the
+    # nodes' stage times (CPU time of the calling thread), which are the costs balanced.
+    import cv2
+    cv2.setNumThreads(1)
     # Import the node modules before saying hello: a spare that takes over a dead worker
     # then only creates nodes (restore within 2 s even on a loaded machine).
     for kind in ('quarter', 'camera_arbiter', 'general_arbiter'):
