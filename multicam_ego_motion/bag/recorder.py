@@ -53,6 +53,9 @@ class BagRecorder:
             raise UserError('record: name the topics with --topics, or use --all')
         self.writer = Rosbag2Writer(out)
         self._lock = threading.Lock()
+        # discover() runs on the executor's timer and once from attach() in the caller's
+        # thread: unserialized, both could subscribe a topic (every message recorded twice).
+        self._discover_lock = threading.Lock()
         self._subscriptions = {}  # topic -> Subscription
         self._node = None
         self._timers = []
@@ -66,6 +69,10 @@ class BagRecorder:
 
     def discover(self):
         """Subscribe to every wanted topic that now has a publisher."""
+        with self._discover_lock:
+            self._discover()
+
+    def _discover(self):
         from multicam_ego_motion.bag.message_types import message_class
         from multicam_ego_motion.bag.topic_qos import subscribing_qos
         node = self._node
