@@ -1,6 +1,13 @@
 """The whole estimator in one process, no ROS transport: the same cores the nodes wrap,
 called in the graph's order for every frame. It is the sequential baseline of the paper's
 comparison (Ts) and a fast way to score a parameter change on a bag.
+
+It gives the lockstep graph's /odom bit for bit: every estimate goes through the message
+conversion it goes through in the graph (quarter -> camera arbiter -> general arbiter ->
+fused-pose feedback; quaternions round the last bits), an image that comes before its
+camera's first CameraInfo is processed once that arrives (the quarter node keeps it pending),
+and the wheel twist is the one the general arbiter would pick. The estimator is chaotic (a
+last-bit difference can move a final drift by 50 %), so anything less is another run.
 """
 import time
 from collections import defaultdict
@@ -13,10 +20,11 @@ from arbiter_node.general_fusion import GeneralFusion
 from arbiter_node.quarter_fusion import fuse_quarters
 from camera_pose_nodes.camera_model import intrinsics_from_msg
 from camera_pose_nodes.image_conversion import image_msg_to_gray
+from camera_pose_nodes.pose_estimate import PoseEstimate
 from camera_pose_nodes.quarter_estimator import QuarterEstimator, QuarterParams
 from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
 from multicam_ego_motion.errors import UserError
-from multicam_ego_motion.pose_messages import stamp_to_ns
+from multicam_ego_motion.pose_messages import estimate_to_msg, msg_to_estimate, stamp_to_ns
 
 
 @dataclass
@@ -51,7 +59,17 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
     result = SequentialResult()
     frame = {}        # camera name -> image message of the current stamp
     frame_stamp = None
-    wheel = None
+    wheel = None      # (stamp_ns, twist, covariance) of the newest wheel reading
+
+    def as_received(est, source):
+        # what a subscriber gets: the estimate through its ROS message
+        return msg_to_estimate(estimate_to_msg(est), source=source)
+
+    def wheel_at(stamp_ns):
+        # as the general arbiter: the newest reading not after the frame, if < 0.5 s old
+        if wheel is None or wheel[0] > stamp_ns or stamp_ns - wheel[0] >= 500_000_000:
+            return None
+        return wheel[1], wheel[2]
 
     def flush():
         if not frame:
@@ -69,12 +87,15 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
                 result.quarters[e.source].append(e)
                 for k, v in e.stage_ms.items():
                     result.stage_ms[k].append(v)
-            cams[name] = fuse_quarters(ests, source=name)
+            received = [as_received(e, f'{name}/q{i}') for i, e in enumerate(ests, 1)]
+            cams[name] = as_received(fuse_quarters(received, source=name), name)
             result.cameras[name].append(cams[name])
-        fused = fusion.process(frame_stamp, cams, wheel_twist=wheel)
+        fused = fusion.process(frame_stamp, cams, wheel_twist=wheel_at(frame_stamp))
+        feedback = as_received(PoseEstimate(frame_stamp, fused.T_odom_base, fused.pose_covariance,
+                                            source='fused', state=fused.state), 'fused')
         for qs in estimators.values():
             for q in qs:
-                q.apply_fused_pose(frame_stamp, fused.T_odom_base, fused.pose_covariance)
+                q.apply_fused_pose(frame_stamp, feedback.T_odom_base, feedback.covariance)
         result.fused.append(fused)
         result.frame_ms.append((time.perf_counter() - t0) * 1e3)
         frame.clear()
@@ -84,7 +105,8 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
     for topic, msg, _ in reader.decoded(topics):
         if topic == wheel_topic:
             tw = msg.twist.twist
-            wheel = (np.array([tw.linear.x, tw.linear.y, tw.linear.z, tw.angular.x, tw.angular.y, tw.angular.z]),
+            wheel = (stamp_to_ns(msg.header.stamp),
+                     np.array([tw.linear.x, tw.linear.y, tw.linear.z, tw.angular.x, tw.angular.y, tw.angular.z]),
                      np.array(msg.twist.covariance).reshape(6, 6))
             continue
         if topic in info_topic:
