@@ -189,7 +189,18 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
     node = rclpy.create_node('ego_motion_replay')
     executor = SingleThreadedExecutor()
     executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
+    stopping = threading.Event()
+
+    def spin():
+        try:
+            executor.spin()
+        except Exception:
+            # Tearing down (Ctrl-C, end of run) can invalidate entities under the wait set;
+            # anything raised before that is a real error.
+            if not stopping.is_set():
+                raise
+
+    spinner = threading.Thread(target=spin, daemon=True, name='spin')
     recorder = BagRecorder(out / 'output', topics=record_topics or recorded_topics(rig))
     received = {}
     node.create_subscription(Odometry, '/odom', lambda data: received.setdefault(
@@ -226,6 +237,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
     finally:
         # Stop the spinning thread before the recorder destroys its subscriptions: spinning
         # over destroyed entities raises in that thread (InvalidHandle).
+        stopping.set()
         executor.shutdown()
         if spinner.is_alive():
             spinner.join(timeout=5.0)
