@@ -19,6 +19,7 @@ from tf2_msgs.msg import TFMessage
 from arbiter_node.general_fusion import PARAMETERS as FUSION_PARAMETERS
 from arbiter_node.general_fusion import GeneralFusion
 from arbiter_node.stamp_sync import StampSynchronizer
+from arbiter_node.wheel_prior import WheelBuffer, twist_from_odometry
 from camera_pose_nodes.pose_estimate import PoseEstimate
 from multicam_ego_motion import diagnostics
 from multicam_ego_motion.errors import UserError
@@ -57,7 +58,7 @@ class GeneralArbiterNode(Node):
         self.p = p
         self.fusion = GeneralFusion(self.rig, fusion_params)
         self.sync = StampSynchronizer(self.rig.names, p['sync_timeout_s'])
-        self.wheel = []                      # (stamp_ns, twist 6, cov 6x6), newest last
+        self.wheel = WheelBuffer()
         self.path = Path()
         self.path.header.frame_id = p['odom_frame']
         self.on_frame_done = None            # hook(node) after a frame was published (snapshots)
@@ -76,20 +77,7 @@ class GeneralArbiterNode(Node):
         self.get_logger().info(f'fusing cameras {", ".join(self.rig.names)}')
 
     def on_wheel(self, msg: Odometry):
-        tw = msg.twist.twist
-        twist = np.array([tw.linear.x, tw.linear.y, tw.linear.z, tw.angular.x, tw.angular.y, tw.angular.z])
-        cov = np.array(msg.twist.covariance, dtype=float).reshape(6, 6)
-        if np.all(np.isfinite(twist)) and np.all(np.isfinite(cov)):
-            self.wheel.append((stamp_to_ns(msg.header.stamp), twist, cov))
-            del self.wheel[:-200]
-
-    def wheel_at(self, stamp_ns):
-        # The newest wheel reading not after the frame; wheel odometry runs at the frame rate
-        # or faster, so anything older than 0.5 s means the wheels went silent.
-        for s, twist, cov in reversed(self.wheel):
-            if s <= stamp_ns:
-                return (twist, cov) if stamp_ns - s < 500_000_000 else None
-        return None
+        self.wheel.add(stamp_to_ns(msg.header.stamp), *twist_from_odometry(msg))
 
     def on_camera(self, name, msg):
         est = msg_to_estimate(msg, source=name)
@@ -113,7 +101,7 @@ class GeneralArbiterNode(Node):
             t0 = time.thread_time()
             # Rig order, not arrival order: float sums must not depend on the scheduler.
             items = {n: g.items[n] for n in self.rig.names if n in g.items}
-            fused = self.fusion.process(g.stamp_ns, items, wheel_twist=self.wheel_at(g.stamp_ns))
+            fused = self.fusion.process(g.stamp_ns, items, wheel_twist=self.wheel.at(g.stamp_ns))
             ms = (time.thread_time() - t0) * 1e3
             if not (np.all(np.isfinite(fused.T_odom_base)) and is_valid_covariance(fused.pose_covariance)
                     and is_valid_covariance(fused.twist_covariance)):
@@ -130,12 +118,12 @@ class GeneralArbiterNode(Node):
     def get_state(self):
         """Picklable state: the fusion core (pickled whole), wheel buffer, last fused stamp.
         /ego_motion/path restarts after a restore (its history is not carried)."""
-        return {'fusion': self.fusion, 'wheel': list(self.wheel),
+        return {'fusion': self.fusion, 'wheel': self.wheel,
                 'last_released_ns': self.sync.last_released_ns}
 
     def set_state(self, s):
         self.fusion = s['fusion']
-        self.wheel = list(s['wheel'])
+        self.wheel = s['wheel']
         self.sync.last_released_ns = s['last_released_ns']
 
     def publish(self, fused, group, ms):

@@ -14,10 +14,9 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Dict, List
 
-import numpy as np
-
 from arbiter_node.general_fusion import GeneralFusion
 from arbiter_node.quarter_fusion import fuse_quarters
+from arbiter_node.wheel_prior import WheelBuffer, twist_from_odometry
 from camera_pose_nodes.camera_model import intrinsics_from_msg
 from camera_pose_nodes.image_conversion import image_msg_to_gray
 from camera_pose_nodes.pose_estimate import PoseEstimate
@@ -59,17 +58,11 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
     result = SequentialResult()
     frame = {}        # camera name -> image message of the current stamp
     frame_stamp = None
-    wheel = None      # (stamp_ns, twist, covariance) of the newest wheel reading
+    wheel = WheelBuffer()
 
     def as_received(est, source):
         # what a subscriber gets: the estimate through its ROS message
         return msg_to_estimate(estimate_to_msg(est), source=source)
-
-    def wheel_at(stamp_ns):
-        # as the general arbiter: the newest reading not after the frame, if < 0.5 s old
-        if wheel is None or wheel[0] > stamp_ns or stamp_ns - wheel[0] >= 500_000_000:
-            return None
-        return wheel[1], wheel[2]
 
     def flush():
         if not frame:
@@ -90,7 +83,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             received = [as_received(e, f'{name}/q{i}') for i, e in enumerate(ests, 1)]
             cams[name] = as_received(fuse_quarters(received, source=name), name)
             result.cameras[name].append(cams[name])
-        fused = fusion.process(frame_stamp, cams, wheel_twist=wheel_at(frame_stamp))
+        fused = fusion.process(frame_stamp, cams, wheel_twist=wheel.at(frame_stamp))
         feedback = as_received(PoseEstimate(frame_stamp, fused.T_odom_base, fused.pose_covariance,
                                             source='fused', state=fused.state), 'fused')
         for qs in estimators.values():
@@ -104,10 +97,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
 
     for topic, msg, _ in reader.decoded(topics):
         if topic == wheel_topic:
-            tw = msg.twist.twist
-            wheel = (stamp_to_ns(msg.header.stamp),
-                     np.array([tw.linear.x, tw.linear.y, tw.linear.z, tw.angular.x, tw.angular.y, tw.angular.z]),
-                     np.array(msg.twist.covariance).reshape(6, 6))
+            wheel.add(stamp_to_ns(msg.header.stamp), *twist_from_odometry(msg))
             continue
         if topic in info_topic:
             cam = info_topic[topic]

@@ -48,7 +48,6 @@ def _replay(scenario: str, root: Path) -> dict:
     ref = load_trajectory(f'{bag}:/ground_truth/odom')
     m = evaluate_trajectories(ref, est)
     m['frames'] = len(est)
-    m['ate_pct'] = 100.0 * m['ate_rmse_m'] / m['path_length_m']
     m['abs_scale_error_pct'] = abs(m['scale_error_pct'])
     return m
 

@@ -28,6 +28,7 @@ SUMMARY_ROWS = [  # (key, label, format) of the printed table and the report
     ('poses', 'associated poses', '{:d}'),
     ('path_length_m', 'path length [m]', '{:.3f}'),
     ('ate_rmse_m', 'ATE RMSE, aligned on first pose [m]', '{:.4f}'),
+    ('ate_pct', 'ATE RMSE, aligned on first pose [% of path]', '{:.3f}'),
     ('ate_se3_rmse_m', 'ATE RMSE after SE(3) fit [m]', '{:.4f}'),
     ('ate_sim3_rmse_m', 'ATE RMSE after Sim(3) fit [m]', '{:.4f}'),
     ('scale_error_pct', 'scale error [%]', '{:+.3f}'),

@@ -6,7 +6,7 @@ L = L_(N-1) its path length; ang(R) is the angle of a rotation (norm of its rota
 
 * ate_rmse_m: absolute trajectory error after aligning on the first pose (P' = Q_0 P_0^-1 P,
   no fit, no scale: what a robot starting at a known pose gets),
-  sqrt(mean_i |p'_i - q_i|^2).
+  sqrt(mean_i |p'_i - q_i|^2); ate_pct = 100 ate_rmse_m / L (the issue's "% of path length").
 * ate_se3_rmse_m, ate_sim3_rmse_m: the same after a least-squares Umeyama fit of the
   positions, rigid (SE(3)) and rigid plus scale (Sim(3)).
 * sim3_scale: the Sim(3) factor s with q ~ s R p + t; scale_error_pct = 100 (1/s - 1): the
@@ -91,10 +91,12 @@ def compute_metrics(ref_poses, est_poses, rpe_distances=DEFAULT_RPE_DISTANCES_M)
     final_m = float(translation_errors(ref_poses[-1:], origin[-1:])[0])
     final_rot = float(rotation_angles_deg(origin[-1, :3, :3].T @ ref_poses[-1, :3, :3]))
     per_metre = (lambda x: x / length) if length > 0 else (lambda x: float('nan'))
+    ate_m = rmse(translation_errors(ref_poses, origin))
     out = {
         'poses': len(ref_poses),
         'path_length_m': length,
-        'ate_rmse_m': rmse(translation_errors(ref_poses, origin)),
+        'ate_rmse_m': ate_m,
+        'ate_pct': 100.0 * per_metre(ate_m),
         'ate_se3_rmse_m': rmse(translation_errors(ref_poses, align_se3(est_poses, ref_poses))),
         'ate_sim3_rmse_m': rmse(translation_errors(ref_poses, sim3)),
         'sim3_scale': scale,

@@ -1,0 +1,41 @@
+"""Wheel-odometry readings the general arbiter uses as a twist prior, ROS-free.
+
+One buffer for the node and for the sequential pipeline, so both pick the same reading for a
+frame (the sequential pipeline must reproduce the graph's /odom bit for bit).
+"""
+from typing import List, Optional, Tuple
+
+import numpy as np
+
+# Wheel odometry runs at the frame rate or faster: a reading older than this means the wheels
+# went silent, and the fusion must not keep using it.
+MAX_AGE_NS = 500_000_000
+KEEP = 200                 # readings kept: a few seconds at any usual wheel rate
+
+
+def twist_from_odometry(msg) -> Tuple[np.ndarray, np.ndarray]:
+    """(twist 6, covariance 6x6) in base_link from a nav_msgs/Odometry."""
+    tw = msg.twist.twist
+    twist = np.array([tw.linear.x, tw.linear.y, tw.linear.z, tw.angular.x, tw.angular.y, tw.angular.z])
+    return twist, np.array(msg.twist.covariance, dtype=float).reshape(6, 6)
+
+
+class WheelBuffer:
+    def __init__(self, max_age_ns: int = MAX_AGE_NS):
+        self.max_age_ns = max_age_ns
+        self.readings: List[Tuple[int, np.ndarray, np.ndarray]] = []   # newest last
+
+    def add(self, stamp_ns: int, twist: np.ndarray, cov: np.ndarray) -> bool:
+        """Keeps a finite reading; returns False (and drops it) otherwise."""
+        if not (np.all(np.isfinite(twist)) and np.all(np.isfinite(cov))):
+            return False
+        self.readings.append((int(stamp_ns), np.asarray(twist, float), np.asarray(cov, float)))
+        del self.readings[:-KEEP]
+        return True
+
+    def at(self, stamp_ns: int) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+        """The newest reading not after stamp_ns, if it is fresh; else None."""
+        for s, twist, cov in reversed(self.readings):
+            if s <= stamp_ns:
+                return (twist, cov) if stamp_ns - s < self.max_age_ns else None
+        return None
