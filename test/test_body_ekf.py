@@ -32,6 +32,18 @@ def test_prediction_integrates_body_twist():
     assert se3.yaw_of(f.T[:3, :3]) == pytest.approx(0.5, abs=1e-12)
 
 
+def test_constant_twist_prediction_follows_the_arc():
+    # One 1 s step through a quarter turn lands on the circle (the arc), where the chord
+    # along the start heading (Euler) would put it 0.5 m ahead and on the x axis.
+    v, w = 0.5, np.pi / 2
+    for params, expect in ((BodyEkfParams(), truth(1.0, v, w)[:3, 3]), (BodyEkfParams(arc_integration=False), [v, 0, 0])):
+        f = BodyEKF(params)
+        f.reinitialize(np.eye(4), POSE_COV, twist=np.r_[v, 0, 0, 0, 0, w])
+        f.predict(1.0)
+        np.testing.assert_allclose(f.T[:3, 3], expect, atol=1e-12)
+        assert se3.yaw_of(f.T[:3, :3]) == pytest.approx(w, abs=1e-12)
+
+
 def test_tracks_circle_consistently_and_recovers_body_twist():
     rng = np.random.default_rng(0)
     f = BodyEKF()
