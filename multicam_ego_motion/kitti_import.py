@@ -20,7 +20,8 @@ from multicam_ego_motion.bag.rig_bag_writer import STAMP_EPOCH_NS, RigBagWriter
 from multicam_ego_motion.camera_intrinsics import CameraIntrinsics
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.rig import CameraMount, Rig, optical_rotation
-from multicam_ego_motion.se3 import R_to_rotvec, inv_T
+from multicam_ego_motion.scenarios.wheel_odometry import WheelOdometry
+from multicam_ego_motion.se3 import R_to_rotvec, inv_T, make_T, rotvec_to_R
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +34,10 @@ def configure_parser(p):
     p.add_argument('--out', required=True, help='bag folder to create (must not exist)')
     p.add_argument('--rig-out', default=None, help='also write the rig YAML here')
     p.add_argument('--max-frames', type=int, default=None, help='import only the first N frames')
+    p.add_argument('--simulated-wheel', type=int, default=None, metavar='SEED',
+                   help='also write /wheel/odom simulated from the ground truth with the scenario '
+                        'generator\'s slip model (KITTI odometry has no wheel or IMU data; without '
+                        'a metric prior a straight drive gives the rig no scale)')
 
 
 def read_matrix_lines(path: Path, what: str):
@@ -148,7 +153,18 @@ def body_twists(poses, dt):
     return twists
 
 
-def import_kitti(folder, out, rig_out=None, max_frames=None, progress=True):
+def simulated_wheel(twists, seed):
+    """Per frame (pose, linear, angular, pose variances, twist variances) of a wheel
+    odometry that measured the ground-truth forward speed and yaw rate with slip."""
+    wheel = WheelOdometry(np.random.default_rng(seed))
+    v, w = wheel.measure(np.array([t[0][0] for t in twists]), np.array([t[1][2] for t in twists]))
+    times = np.arange(len(twists)) * FRAME_PERIOD_NS * 1e-9
+    x, y, yaw = wheel.dead_reckon(times, v, w)
+    return [(make_T(rotvec_to_R([0.0, 0.0, yaw[i]]), [x[i], y[i], 0.0]), (v[i], 0.0, 0.0), (0.0, 0.0, w[i]),
+             *wheel.variances(times[i], x[i], y[i], v[i], w[i])) for i in range(len(twists))]
+
+
+def import_kitti(folder, out, rig_out=None, max_frames=None, progress=True, wheel_seed=None):
     folder, out = Path(folder), Path(out)
     if not folder.is_dir():
         raise UserError(f'KITTI folder not found: {folder}')
@@ -157,6 +173,8 @@ def import_kitti(folder, out, rig_out=None, max_frames=None, progress=True):
     pairs = list_images(folder)
     P0, P1, baseline = read_calibration(folder)
     camera_poses = read_poses(folder)
+    if wheel_seed is not None and not camera_poses:
+        raise UserError(f'--simulated-wheel needs the ground truth it is simulated from: {folder / "poses.txt"}')
     if max_frames is not None:
         pairs = pairs[:max_frames]
     if camera_poses and len(camera_poses) != len(pairs):
@@ -171,6 +189,7 @@ def import_kitti(folder, out, rig_out=None, max_frames=None, progress=True):
             'right': CameraIntrinsics(w, h, P1[0, 0], P1[1, 1], P1[0, 2], P1[1, 2], tx=P1[0, 3])}
     poses = base_poses(camera_poses, rig.cameras[0].rotation)
     twists = body_twists(poses, FRAME_PERIOD_NS * 1e-9)
+    wheel = simulated_wheel(twists, wheel_seed) if wheel_seed is not None and twists else []
 
     with RigBagWriter(out, rig, intr) as bag:
         bag.write_static_transforms(STAMP_EPOCH_NS)
@@ -182,17 +201,21 @@ def import_kitti(folder, out, rig_out=None, max_frames=None, progress=True):
             if i < len(poses):
                 bag.write_odometry('/ground_truth/odom', stamp, poses[i], *twists[i],
                                    GROUND_TRUTH_VAR, GROUND_TRUTH_VAR)
+            if i < len(wheel):
+                bag.write_odometry('/wheel/odom', stamp, *wheel[i])
     rig.save(out / 'rig.yaml')
     if rig_out:
         rig.save(rig_out)
-    return {'frames': len(pairs), 'poses': len(poses), 'baseline': baseline, 'size': (w, h)}
+    return {'frames': len(pairs), 'poses': len(poses), 'baseline': baseline, 'size': (w, h),
+            'wheel': len(wheel)}
 
 
 def run(args) -> int:
     logging.basicConfig(level=logging.INFO, format='%(levelname)s %(name)s: %(message)s')
     if args.max_frames is not None and args.max_frames < 1:
         raise UserError(f'--max-frames must be at least 1, got {args.max_frames}')
-    s = import_kitti(args.folder, args.out, args.rig_out, args.max_frames)
+    s = import_kitti(args.folder, args.out, args.rig_out, args.max_frames, wheel_seed=args.simulated_wheel)
+    wheel = f', simulated wheel odometry for {s["wheel"]} frames' if s['wheel'] else ''
     print(f'{args.out}: {s["frames"]} stereo frames {s["size"][0]}x{s["size"][1]} at 10 Hz, '
-          f'baseline {s["baseline"]:.3f} m, ground truth for {s["poses"]} frames')
+          f'baseline {s["baseline"]:.3f} m, ground truth for {s["poses"]} frames{wheel}')
     return 0

@@ -170,6 +170,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
+    from rclpy.exceptions import InvalidHandle
 
     from multicam_ego_motion.bag.header_stamp import header_stamp_ns
     from multicam_ego_motion.bag.player import BagPlayer, PlayOptions
@@ -192,13 +193,19 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
     stopping = threading.Event()
 
     def spin():
-        try:
-            executor.spin()
-        except Exception:
-            # Tearing down (Ctrl-C, end of run) can invalidate entities under the wait set;
-            # anything raised before that is a real error.
-            if not stopping.is_set():
-                raise
+        while not stopping.is_set():
+            try:
+                executor.spin_once(timeout_sec=0.1)
+            except InvalidHandle:
+                # An entity destroyed by its owner while in the wait set (the player removes
+                # its publishers when it stops, also on an error): the next wait set is
+                # built without it.
+                continue
+            except Exception:
+                # Tearing down (Ctrl-C, end of run) can invalidate more under the wait set;
+                # anything raised before that is a real error.
+                if not stopping.is_set():
+                    raise
 
     spinner = threading.Thread(target=spin, daemon=True, name='spin')
     recorder = BagRecorder(out / 'output', topics=record_topics or recorded_topics(rig))

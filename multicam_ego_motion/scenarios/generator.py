@@ -130,12 +130,9 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
                                T_world_start_inv @ pose_matrix(x[i], y[i], yaw[i]),
                                (speed[i], 0.0, 0.0), (0.0, 0.0, yaw_rate[i]),
                                GROUND_TRUTH_POSE_VAR, GROUND_TRUTH_TWIST_VAR)
-            drift = 0.02 * (abs(wx[i]) + abs(wy[i])) + 1e-4
             bag.write_odometry('/wheel/odom', stamp, pose_matrix(wx[i], wy[i], wyaw[i]),
                                (wheel_v[i], 0.0, 0.0), (0.0, 0.0, wheel_w[i]),
-                               (drift ** 2, drift ** 2, 1e-6, 1e-6, 1e-6, (0.01 + 0.01 * times[i]) ** 2),
-                               (max(abs(wheel_v[i]) * 0.03, 0.01) ** 2, 1e-4, 1e-6, 1e-6, 1e-6,
-                                (max(abs(wheel_w[i]) * 0.03, 0.005) + abs(wheel.yaw_rate_bias)) ** 2))
+                               *wheel.variances(times[i], wx[i], wy[i], wheel_v[i], wheel_w[i]))
     elapsed = time.perf_counter() - started
     rig.save(out / 'rig.yaml')
     if rig_out:

@@ -29,3 +29,13 @@ class WheelOdometry:
         x = np.concatenate([[0.0], np.cumsum(v_mid * dt * np.cos(heading))])
         y = np.concatenate([[0.0], np.cumsum(v_mid * dt * np.sin(heading))])
         return x, y, yaw
+
+    def variances(self, t: float, x: float, y: float, v: float, w: float):
+        """(pose, twist) diagonal variances a wheel driver would publish with a reading: the
+        pose's grow with the distance and time dead-reckoned, the twist's are the noise model's
+        (relative noise, a floor, and the yaw-rate bias it cannot know the sign of)."""
+        drift = 0.02 * (abs(x) + abs(y)) + 1e-4
+        pose = (drift ** 2, drift ** 2, 1e-6, 1e-6, 1e-6, (0.01 + 0.01 * t) ** 2)
+        twist = (max(abs(v) * self.SPEED_NOISE, 0.01) ** 2, 1e-4, 1e-6, 1e-6, 1e-6,
+                 (max(abs(w) * self.YAW_RATE_NOISE, 0.005) + abs(self.yaw_rate_bias)) ** 2)
+        return pose, twist
