@@ -169,9 +169,12 @@ class KLTTracker:
             sub = crop[wy0 - oy:wy1 - oy, wx0 - ox:wx1 - ox]
             mask = np.zeros(sub.shape, np.uint8)
             mask[y0 - wy0:y1 - wy0, x0 - wx0:x1 - wx0] = 255
-            for u, v in existing:
-                cv2.circle(mask, (int(round(u - wx0)), int(round(v - wy0))),
-                           int(cfg.min_distance_px), 0, -1)
+            # Only features whose exclusion disc reaches this window change the mask.
+            r = int(cfg.min_distance_px)
+            near = existing[(existing[:, 0] > wx0 - r - 1) & (existing[:, 0] < wx1 + r + 1)
+                            & (existing[:, 1] > wy0 - r - 1) & (existing[:, 1] < wy1 + r + 1)]
+            for u, v in near:
+                cv2.circle(mask, (int(round(u - wx0)), int(round(v - wy0))), r, 0, -1)
             p = cv2.goodFeaturesToTrack(sub, maxCorners=want, qualityLevel=cfg.quality_level,
                                         minDistance=cfg.min_distance_px, mask=mask,
                                         blockSize=cfg.block_size)

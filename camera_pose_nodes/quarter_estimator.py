@@ -12,6 +12,7 @@ fixes rotation but not distance (see README, design notes).
 import math
 import time
 from dataclasses import dataclass, fields, asdict
+from functools import lru_cache
 from typing import Dict, Optional
 
 import numpy as np
@@ -29,6 +30,13 @@ STATE_VERSION = 1
 STAGES = ('acquire', 'extract', 'track', 'pose', 'structure')
 _ROTATION_ONLY_POSITION_VARIANCE = 1.0e2   # m^2: 'position not measured', still < UNINFORMATIVE
 _TRIANGULATION_VIEWS = 5     # views per DLT: oldest, newest and evenly spaced between
+
+
+@lru_cache(maxsize=None)
+def _view_indices(n_views: int) -> tuple:
+    # Which of a track's n views go into the DLT (computed once per n: this ran ~35 times per
+    # quarter and frame, a few percent of a worker's CPU).
+    return tuple(np.linspace(0, n_views - 1, _TRIANGULATION_VIEWS).round().astype(int).tolist())
 
 # name -> (default, description, min, max). The node declares its ROS parameters from this.
 PARAMETERS = {
@@ -304,8 +312,7 @@ class QuarterEstimator:
             if len(obs) < 2:
                 continue
             cand.append(i)
-            sel = np.linspace(0, len(obs) - 1, _TRIANGULATION_VIEWS).round().astype(int)
-            views.append([obs[k] for k in sel])
+            views.append([obs[k] for k in _view_indices(len(obs))])
         if not cand:
             return
         V = _TRIANGULATION_VIEWS

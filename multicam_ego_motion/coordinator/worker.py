@@ -278,11 +278,23 @@ def main(argv=None):
     conn = control.connect(args.control)
     signal.signal(signal.SIGTERM, lambda *a: (_ for _ in ()).throw(SystemExit(0)))
     rclpy.init()
+    # EGO_MOTION_PROFILE_DIR=DIR: each worker writes cProfile stats to DIR/worker_<index>.prof
+    # when it stops (where the graph's CPU goes beyond the nodes' own stage times).
+    profile_dir = os.environ.get('EGO_MOTION_PROFILE_DIR')
+    profiler = None
+    if profile_dir:
+        import cProfile
+        profiler = cProfile.Profile()
+        profiler.enable()
     try:
         Worker(args.index, conn, args.params_file).spin()
     except (KeyboardInterrupt, SystemExit, ExternalShutdownException):
         pass
     finally:
+        if profiler is not None:
+            profiler.disable()
+            os.makedirs(profile_dir, exist_ok=True)
+            profiler.dump_stats(os.path.join(profile_dir, f'worker_{args.index}.prof'))
         rclpy.try_shutdown()
     return 0
 
