@@ -18,6 +18,7 @@ from tf2_msgs.msg import TFMessage
 
 from arbiter_node.general_fusion import PARAMETERS as FUSION_PARAMETERS
 from arbiter_node.general_fusion import GeneralFusion
+from arbiter_node.path_history import PathHistory
 from arbiter_node.stamp_sync import StampSynchronizer
 from arbiter_node.wheel_prior import WheelBuffer, twist_from_odometry
 from camera_pose_nodes.pose_estimate import PoseEstimate
@@ -43,7 +44,10 @@ NODE_PARAMETERS = {
     'use_wheel_odometry': (True, 'fuse /wheel/odom as a body-twist prior when it is published', None, None),
     'wheel_odometry_topic': ('/wheel/odom', 'wheel odometry (nav_msgs/Odometry)', None, None),
     'sync_timeout_s': (0.5, 'longest wait for all cameras of one frame', 0.0, 60.0),
-    'path_max_poses': (100000, 'longest /ego_motion/path kept', 1, 10000000),
+    'path_max_poses': (5000, 'poses kept on /ego_motion/path (oldest dropped)', 1, 1000000),
+    'path_min_spacing_m': (0.05, '/ego_motion/path keeps a pose every this many metres', 0.0, 100.0),
+    'path_min_turn_rad': (0.1, '... or every this much rotation', 0.0, 3.15),
+    'path_publish_period_s': (1.0, '/ego_motion/path is republished at most this often (stamp time; it costs ~10 us per pose)', 0.0, 3600.0),
 }
 
 
@@ -59,8 +63,8 @@ class GeneralArbiterNode(Node):
         self.fusion = GeneralFusion(self.rig, fusion_params)
         self.sync = StampSynchronizer(self.rig.names, p['sync_timeout_s'])
         self.wheel = WheelBuffer()
-        self.path = Path()
-        self.path.header.frame_id = p['odom_frame']
+        self.path = PathHistory(p['path_min_spacing_m'], p['path_min_turn_rad'], p['path_max_poses'],
+                                p['path_publish_period_s'])
         self.on_frame_done = None            # hook(node) after a frame was published (snapshots)
         self.pub_fused = self.create_publisher(PoseWithCovarianceStamped, '/ego_motion/fused_pose', RELIABLE)
         self.pub_odom = self.create_publisher(Odometry, '/odom', RELIABLE)
@@ -85,7 +89,7 @@ class GeneralArbiterNode(Node):
 
     def on_reset(self, request, response):
         self.fusion.reset()
-        self.path.poses = []
+        self.path.reset()
         response.success = True
         response.message = 'general arbiter reset: odometry restarts at the origin'
         self.get_logger().warn(response.message)
@@ -145,13 +149,8 @@ class GeneralArbiterNode(Node):
         if self.p['publish_tf']:
             self.pub_tf.publish(TFMessage(transforms=[transform_msg(
                 fused.T_odom_base, odom_frame, base_frame, fused.stamp_ns)]))
-        ps = PoseStamped()
-        ps.header = odom.header
-        ps.pose = odom.pose.pose
-        self.path.header.stamp = stamp
-        self.path.poses.append(ps)
-        del self.path.poses[:-self.p['path_max_poses']]
-        self.pub_path.publish(self.path)
+        if self.path.add(fused.stamp_ns, fused.T_odom_base, PoseStamped(header=odom.header, pose=odom.pose.pose)):
+            self.pub_path.publish(Path(header=odom.header, poses=[p[2] for p in self.path.poses]))
         self.pub_odom.publish(odom)
         missing = list(group.missing)
         level = 'ok' if fused.state == 'tracking' and not missing else 'warn'

@@ -80,3 +80,23 @@ def test_odometry_follows_ground_truth(replayed):
     q = np.array([truth.pose.pose.position.x, truth.pose.pose.position.y])
     travelled = 5.0   # about 1 m/s for 5 s
     assert np.linalg.norm(p - q) < 0.05 * travelled, (p, q)
+
+
+def test_path_is_decimated_and_ends_at_the_odometry(replayed):
+    # /ego_motion/path: a pose every 5 cm (or 0.1 rad), republished at most once a second of
+    # bag time (its cost grows with its length), ending where /odom was at that stamp.
+    out, _ = replayed
+    paths = read_topic(out / 'output', '/ego_motion/path')
+    assert 1 <= len(paths) <= DURATION_S + 1
+    stamps = [m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in paths]
+    assert all(b - a >= 1.0 - 1e-9 for a, b in zip(stamps, stamps[1:]))
+    odom = {(m.header.stamp.sec, m.header.stamp.nanosec): m.pose.pose.position
+            for m in read_topic(out / 'output', '/odom')}
+    last = paths[-1]
+    assert last.header.frame_id == 'odom' and len(last.poses) < FRAMES
+    end = odom[(last.header.stamp.sec, last.header.stamp.nanosec)]
+    p = last.poses[-1].pose.position
+    assert (p.x, p.y, p.z) == (end.x, end.y, end.z)
+    xyz = np.array([[q.pose.position.x, q.pose.position.y] for q in last.poses])
+    steps = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
+    assert len(last.poses) >= 5 and (steps >= 0.05 - 1e-9).mean() > 0.8
