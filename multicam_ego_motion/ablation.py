@@ -29,8 +29,7 @@ def score(bag, fused, gt_topic) -> dict:
     from multicam_ego_motion.evaluation.evaluate import evaluate_trajectories
     from multicam_ego_motion.evaluation.trajectory_io import Trajectory, load_trajectory
     est = Trajectory.from_poses([f.stamp_ns / 1e9 for f in fused], [f.T_odom_base for f in fused])
-    m = evaluate_trajectories(load_trajectory(f'{bag}:{gt_topic}'), est)
-    return m
+    return evaluate_trajectories(load_trajectory(f'{bag}:{gt_topic}'), est)
 
 
 def row(label, m) -> str:

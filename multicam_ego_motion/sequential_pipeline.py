@@ -80,7 +80,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
                 result.quarters[e.source].append(e)
                 for k, v in e.stage_ms.items():
                     result.stage_ms[k].append(v)
-            received = [as_received(e, f'{name}/q{i}') for i, e in enumerate(ests, 1)]
+            received = [as_received(e, e.source) for e in ests]
             cams[name] = as_received(fuse_quarters(received, source=name), name)
             result.cameras[name].append(cams[name])
         fused = fusion.process(frame_stamp, cams, wheel_twist=wheel.at(frame_stamp))

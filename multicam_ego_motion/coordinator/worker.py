@@ -31,11 +31,9 @@ from multicam_ego_motion.errors import UserError
 PR_SET_PDEATHSIG = 1
 LINK_TIMEOUT_S = 2.0       # longest wait for a moved node's topics to be matched
 DETACH_IDLE_TIMEOUT_S = 2.0
+QUARTER_SNAPSHOT_EVERY = 5   # frames between state snapshots of a quarter node
+NODE_POLL_S = 0.1            # the nodes' own POLL_PERIOD_S
 
-
-
-QUARTER_SNAPSHOT_EVERY = 5
-NODE_POLL_S = 0.1            # the nodes' own POLL_PERIOD_S   # frames between state snapshots of a quarter node
 
 def _die_with_parent():
     try:
@@ -278,8 +276,9 @@ def main(argv=None):
     conn = control.connect(args.control)
     signal.signal(signal.SIGTERM, lambda *a: (_ for _ in ()).throw(SystemExit(0)))
     rclpy.init()
-    # EGO_MOTION_PROFILE_DIR=DIR: each worker writes cProfile stats to DIR/worker_<index>.prof
-    # when it stops (where the graph's CPU goes beyond the nodes' own stage times).
+    # EGO_MOTION_PROFILE_DIR=DIR: each worker writes cProfile stats to
+    # DIR/worker_<index>_<pid>.prof when it stops (where the graph's CPU goes beyond the
+    # nodes' own stage times). The pid: spares all start with index -1.
     profile_dir = os.environ.get('EGO_MOTION_PROFILE_DIR')
     profiler = None
     if profile_dir:
@@ -294,7 +293,7 @@ def main(argv=None):
         if profiler is not None:
             profiler.disable()
             os.makedirs(profile_dir, exist_ok=True)
-            profiler.dump_stats(os.path.join(profile_dir, f'worker_{args.index}.prof'))
+            profiler.dump_stats(os.path.join(profile_dir, f'worker_{args.index}_{os.getpid()}.prof'))
         rclpy.try_shutdown()
     return 0
 
