@@ -74,8 +74,9 @@ class PlayOptions:
     progress: Optional[bool] = None               # None: only when stderr is a terminal
     discovery_s: float = 1.0          # listen to the graph this long before the first frame
     discovery_timeout_s: float = 5.0  # then wait at most this long for subscribers to match
-    # lockstep: called with the frame index after each acknowledged trigger frame, before the
-    # next one is published (the coordinator moves nodes there)
+    # lockstep: called with the frame index after an acknowledged trigger frame, just before
+    # the next frame is published (the coordinator moves nodes there); never after the last
+    # frame, where a move would only change what the run's final diagnostics say
     between_frames: Optional[Callable[[int], None]] = None
     # Called about twice a second while the player waits (for the graph or an ack); raising
     # (a UserError) aborts playback: `replay` uses it to notice a dead worker at once
@@ -261,8 +262,12 @@ class BagPlayer:
         bar = _progress_bar(window_s, opts.progress)
         done_s = 0.0
         clock = Clock()
+        acked_trigger = None          # index of the last acknowledged trigger frame
         try:
             for frame in self.frames():
+                if acked_trigger is not None and opts.between_frames is not None:
+                    opts.between_frames(acked_trigger)
+                acked_trigger = None
                 if not opts.lockstep:
                     due = t0_wall + (frame.log_time_ns - self.start_ns) / NS_PER_S / opts.rate
                     self._wait(lambda: False, due - time.monotonic())
@@ -281,8 +286,7 @@ class BagPlayer:
                 result.frames += 1
                 if opts.lockstep and frame.is_trigger:
                     result.republished += self._await_ack(frame, acks_before, publishers)
-                    if opts.between_frames is not None:
-                        opts.between_frames(frame.index)
+                    acked_trigger = frame.index
                 now_s = (frame.log_time_ns - self.start_ns) / NS_PER_S
                 bar.update(now_s - done_s)
                 done_s = now_s
