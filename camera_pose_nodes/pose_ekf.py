@@ -18,6 +18,10 @@ from multicam_ego_motion.se3 import make_T, R_to_rotvec, rotvec_to_R
 DIM = 12
 P_, TH, V_, W_ = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
 _MIN_EIG = 1e-12
+# Steps of the epipolar Jacobian's finite differences (constant: built once, not per update).
+_EPS = 1e-6
+_EPS_STEPS = tuple(np.eye(3) * _EPS)
+_EPS_ROTATIONS = tuple(rotvec_to_R(d) for d in _EPS_STEPS)
 
 
 class PoseEKF:
@@ -188,11 +192,10 @@ class PoseEKF:
         with the body at (R_ob, p). Also returns |n_xy| / |n| (near 0 at the epipole)."""
         R_bc, t_bc = T_base_cam[:3, :3], T_base_cam[:3, 3]
         A = (R_ob @ R_bc).T                              # odom -> camera
-        c2 = p + R_ob @ t_bc
-        n = np.cross((c1 - c2) @ A.T, r1 @ A.T)          # epipolar plane normal, camera frame
-        nxy = np.hypot(n[:, 0], n[:, 1])
-        e = (n[:, 0] * xy2[:, 0] + n[:, 1] * xy2[:, 1] + n[:, 2]) / np.maximum(nxy, 1e-12)
-        return e, nxy / np.maximum(np.linalg.norm(n, axis=1), 1e-12)
+        n = _epipolar_normal(c1, p + R_ob @ t_bc, A, r1 @ A.T)
+        nxy = np.hypot(n[0], n[1])
+        e = _line_distance(n, nxy, xy2)
+        return e, nxy / np.maximum(np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]), 1e-12)
 
     def update_epipolar(self, c1, r1, xy2, sigma, T_base_cam, gate_chi2=6.63,
                         min_baseline=0.02) -> np.ndarray:
@@ -215,14 +218,20 @@ class PoseEKF:
             return inl
         e, sharp = self.epipolar_residual(self.R_nom, p, c1, r1, xy2, T_base_cam)
         ok &= np.isfinite(e) & (sharp > 0.1)
-        eps = 1e-6
         H = np.zeros((len(c1), DIM))
-        for k in range(3):            # numerical Jacobian: 6 vectorised evaluations
-            d = np.zeros(3)
-            d[k] = eps
-            H[:, k] = (self.epipolar_residual(self.R_nom, p + d, c1, r1, xy2, T_base_cam)[0] - e) / eps
-            H[:, 3 + k] = (self.epipolar_residual(rotvec_to_R(d) @ self.R_nom, p, c1, r1, xy2,
-                                                  T_base_cam)[0] - e) / eps
+        # Numerical Jacobian: 6 vectorised evaluations. A position step leaves the camera's
+        # rotation, hence the ray in the camera frame, unchanged: computed once.
+        R_bc, t_bc = T_base_cam[:3, :3], T_base_cam[:3, 3]
+        A = (self.R_nom @ R_bc).T
+        r1_cam = r1 @ A.T
+        lever = self.R_nom @ t_bc
+        for k in range(3):
+            n = _epipolar_normal(c1, (p + _EPS_STEPS[k]) + lever, A, r1_cam)
+            H[:, k] = (_line_distance(n, np.hypot(n[0], n[1]), xy2) - e) / _EPS
+            R_ob = _EPS_ROTATIONS[k] @ self.R_nom
+            A_k = (R_ob @ R_bc).T
+            n = _epipolar_normal(c1, p + R_ob @ t_bc, A_k, r1 @ A_k.T)
+            H[:, 3 + k] = (_line_distance(n, np.hypot(n[0], n[1]), xy2) - e) / _EPS
         S = np.einsum('ni,ij,nj->n', H, self.kf.P, H) + sigma ** 2
         inl = ok & np.all(np.isfinite(H), axis=1) & (e ** 2 < gate_chi2 * S)
         if not inl.any():
@@ -267,6 +276,20 @@ class PoseEKF:
         self.R_nom = T_odom_base[:3, :3].copy()
         self.kf.P = Pn
         self._condition()
+
+
+def _epipolar_normal(c1, c2, A, r1_cam):
+    """Epipolar plane normals in the camera frame, (c1 - c2) x r1, as 3 component arrays
+    (the cross product written out: np.cross's generic axis handling cost more than the
+    arithmetic, and the products and differences are the same)."""
+    a = (c1 - c2) @ A.T
+    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
+    b0, b1, b2 = r1_cam[:, 0], r1_cam[:, 1], r1_cam[:, 2]
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+
+
+def _line_distance(n, nxy, xy2):
+    return (n[0] * xy2[:, 0] + n[1] * xy2[:, 1] + n[2]) / np.maximum(nxy, 1e-12)
 
 
 def _skew_batch(v: np.ndarray) -> np.ndarray:

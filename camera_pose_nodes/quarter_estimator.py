@@ -226,29 +226,35 @@ class QuarterEstimator:
     def _epipolar_update(self, stamp_ns, without_landmark) -> int:
         """Epipolar measurements of the tracks without a landmark (see PoseEKF.update_epipolar),
         each against its oldest view that has a fused pose. Returns the inlier count."""
-        tr = self.tracker
-        ids, first, now = [], [], []
+        tr, fused = self.tracker, self.fused_poses
+        rows, first_T, first_px = [], [], []
         body_p = self.ekf.T_odom_base[:3, 3]
-        for i, pt in zip(tr.ids[without_landmark].tolist(), tr.pts[without_landmark]):
+        moved = {}    # fused stamp -> has the body moved enough since (one test per stamp)
+        for row, i in zip(np.flatnonzero(without_landmark).tolist(),
+                          tr.ids[without_landmark].tolist()):
             h = tr.history[i]
             if h[-1][0] != stamp_ns:
                 continue
             # the oldest view with a fused pose: the longest baseline, the best-defined line
-            o = next((o for o in h[:-1] if o[0] in self.fused_poses), None)
+            o = next((h[k] for k in range(len(h) - 1) if h[k][0] in fused), None)
+            if o is None:
+                continue
             # The body itself must have moved: spinning in place only swings the camera on its
             # lever arm, a baseline too short for its direction to be known from the poses.
-            if o is not None and np.linalg.norm(self.fused_poses[o[0]][:3, 3] - body_p) \
-                    >= self.params.epipolar_min_baseline:
-                ids.append(i)
-                first.append((self.fused_poses[o[0]], o[1:]))
-                now.append(pt)
-        if not ids:
+            ok = moved.get(o[0])
+            if ok is None:
+                ok = moved[o[0]] = bool(np.linalg.norm(fused[o[0]][:3, 3] - body_p)
+                                        >= self.params.epipolar_min_baseline)
+            if ok:
+                rows.append(row)
+                first_T.append(fused[o[0]])
+                first_px.append(o[1:])
+        if not rows:
             return 0
-        Tb = np.array([f[0] for f in first])
-        R_oc, c_o = self._camera_pose(Tb)
-        xy1 = self.intrinsics.undistort_points(np.array([f[1] for f in first], float))
+        R_oc, c_o = self._camera_pose(np.array(first_T))
+        xy1 = self.intrinsics.undistort_points(np.array(first_px, float))
         rays = bearings_odom(R_oc, xy1)
-        xy2 = self.intrinsics.undistort_points(np.array(now, float))
+        xy2 = self.intrinsics.undistort_points(tr.pts[rows].astype(float))
         # both ends are noisy: the line distance has about sqrt(2) pixel sigmas
         sigma = math.sqrt(2.0) * self.params.pixel_sigma / (0.5 * (self.intrinsics.fx + self.intrinsics.fy))
         inl = self.ekf.update_epipolar(c_o, rays, xy2, sigma, self.T_base_cam,
@@ -305,28 +311,36 @@ class QuarterEstimator:
         tr.drop(ids[bad])
 
     def _triangulate(self):
-        tr, lm = self.tracker, self.landmarks
-        cand, views = [], []
+        tr, lm, fused = self.tracker, self.landmarks, self.fused_poses
+        cand, obs_of = [], []
         for i in tr.ids.tolist():
-            obs = [o for o in tr.history[i] if o[0] in self.fused_poses]
+            obs = [o for o in tr.history[i] if o[0] in fused]
             if len(obs) < 2:
                 continue
             cand.append(i)
-            views.append([obs[k] for k in _view_indices(len(obs))])
+            obs_of.append(obs)
         if not cand:
             return
-        V = _TRIANGULATION_VIEWS
+        # Ray angle between the oldest and newest views (rotation-compensated in odom). Only
+        # those two views are needed to decide; the few tracks that pass get all their views
+        # below (every step is per point and view, so the values are the same either way).
+        R_oc, c_o, xy = self._views([[obs[0], obs[-1]] for obs in obs_of])
+        rays = bearings_odom(R_oc, xy)
+        par = angle_deg(rays[:, 0], rays[:, -1])
+        want = [k for k, (i, p) in enumerate(zip(cand, par.tolist())) if lm.want(i, p)]
+        if want:
+            views = [[obs_of[k][j] for j in _view_indices(len(obs_of[k]))] for k in want]
+            lm.triangulate(np.array(cand)[want], *self._views(views))
+
+    def _views(self, views):
+        """(R_oc, c_o, xy) of observations (stamp, u, v) given as N rows of V views."""
+        V = len(views[0])
         # stamps stay Python ints: ns stamps do not fit a float64 mantissa
         px = np.array([[o[1:] for o in row] for row in views], float)      # (N, V, 2)
         xy = self.intrinsics.undistort_points(px.reshape(-1, 2)).reshape(-1, V, 2)
-        Tb = np.array([[self.fused_poses[o[0]] for o in row] for row in views])
-        R_oc, c_o = self._camera_pose(Tb)
-        # Ray angle between the oldest and newest views (rotation-compensated in odom).
-        rays = bearings_odom(R_oc, xy)
-        par = angle_deg(rays[:, 0], rays[:, -1])
-        want = np.array([lm.want(i, p) for i, p in zip(cand, par.tolist())], bool)
-        if want.any():
-            lm.triangulate(np.array(cand)[want], R_oc[want], c_o[want], xy[want])
+        R_oc, c_o = self._camera_pose(np.array([[self.fused_poses[o[0]] for o in row]
+                                                for row in views]))
+        return R_oc, c_o, xy
 
     def _forget_unused_poses(self):
         self.landmarks.keep_only(self.tracker.ids)
