@@ -103,17 +103,27 @@ class KLTTracker:
                 a = p0[chunk]
                 b, st1, _ = cv2.calcOpticalFlowPyrLK(prev, crop, a, None, winSize=(w, w),
                                                      maxLevel=lv, criteria=crit)
-                back, st2, _ = cv2.calcOpticalFlowPyrLK(crop, prev, b, None, winSize=(w, w),
-                                                        maxLevel=lv, criteria=crit)
-                fb = np.linalg.norm((back - a).reshape(-1, 2), axis=1)
-                ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < self.cfg.fb_threshold_px)
-                return b.reshape(-1, 2), ok
+                new = b.reshape(-1, 2) + off
+                # Only tracks that can still be kept are checked backwards (a quarter of them
+                # were lost or left the quarter; each point is tracked on its own, so leaving
+                # the others out changes nothing).
+                ok = (st1.ravel() == 1) & np.all(np.isfinite(new), axis=1)
+                ok &= self.region.owns(new)       # left the quarter: the neighbour takes over
+                if ok.any():
+                    back, st2, _ = cv2.calcOpticalFlowPyrLK(crop, prev, b[ok], None,
+                                                            winSize=(w, w), maxLevel=lv,
+                                                            criteria=crit)
+                    fb = np.linalg.norm((back - a[ok]).reshape(-1, 2), axis=1)
+                    ok[ok] = (st2.ravel() == 1) & (fb < self.cfg.fb_threshold_px)
+                return new, ok
 
-            chunks = np.array_split(np.arange(len(p0)), self.n_chunks(len(p0)))
+            # Chunks only pay on threads: run alone, each call rebuilt both pyramids (the
+            # points are tracked independently, so one call gives the same result).
+            n = self.n_chunks(len(p0)) if self.cfg.parallel_chunks else 1
+            chunks = np.array_split(np.arange(len(p0)), n)
             res = self._map(lk, chunks)
-            new = np.concatenate([r[0] for r in res]) + off
-            ok = np.concatenate([r[1] for r in res]) & np.all(np.isfinite(new), axis=1)
-            ok &= self.region.owns(new)           # left the quarter: the neighbour takes over
+            new = np.concatenate([r[0] for r in res])
+            ok = np.concatenate([r[1] for r in res])
             for i in self.ids[~ok]:
                 del self.history[int(i)]
             self.ids, self.pts = self.ids[ok], new[ok].astype(np.float32)

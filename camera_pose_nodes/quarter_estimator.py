@@ -338,9 +338,12 @@ class QuarterEstimator:
         # stamps stay Python ints: ns stamps do not fit a float64 mantissa
         px = np.array([[o[1:] for o in row] for row in views], float)      # (N, V, 2)
         xy = self.intrinsics.undistort_points(px.reshape(-1, 2)).reshape(-1, V, 2)
-        R_oc, c_o = self._camera_pose(np.array([[self.fused_poses[o[0]] for o in row]
-                                                for row in views]))
-        return R_oc, c_o, xy
+        # One camera pose per distinct stamp (tracks share most of theirs), then gathered.
+        slot = {}
+        idx = [[slot.setdefault(o[0], len(slot)) for o in row] for row in views]
+        T = np.array([self.fused_poses[stamp] for stamp in slot]) @ self.T_base_cam
+        T = T[np.array(idx)]
+        return T[..., :3, :3], T[..., :3, 3], xy
 
     def _forget_unused_poses(self):
         self.landmarks.keep_only(self.tracker.ids)
