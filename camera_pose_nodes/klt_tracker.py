@@ -183,7 +183,9 @@ class KLTTracker:
             r = int(cfg.min_distance_px)
             near = existing[(existing[:, 0] > wx0 - r - 1) & (existing[:, 0] < wx1 + r + 1)
                             & (existing[:, 1] > wy0 - r - 1) & (existing[:, 1] < wy1 + r + 1)]
-            for u, v in near:
+            # (as Python floats: iterating the float32 rows cost more than drawing; the
+            # differences are exact in both, pixels being multiples of 2^-15 below 512)
+            for u, v in near.tolist():
                 cv2.circle(mask, (int(round(u - wx0)), int(round(v - wy0))), r, 0, -1)
             p = cv2.goodFeaturesToTrack(sub, maxCorners=want, qualityLevel=cfg.quality_level,
                                         minDistance=cfg.min_distance_px, mask=mask,

@@ -73,8 +73,9 @@ class LandmarkMap:
 
     def lookup(self, ids: np.ndarray):
         """(mask of ids with a landmark, their points M x 3)."""
-        has = np.array([int(i) in self.points for i in ids], bool)
-        X = np.array([self.points[int(i)] for i in np.asarray(ids)[has]]).reshape(-1, 3)
+        ids = np.asarray(ids, dtype=np.int64)
+        has = np.array([i in self.points for i in ids.tolist()], bool)
+        X = np.array([self.points[i] for i in ids[has].tolist()]).reshape(-1, 3)
         return has, X
 
     def want(self, track_id: int, parallax_deg: float) -> bool:

@@ -67,7 +67,7 @@ class PoseEKF:
         return self.kf.x[V_, 0].copy(), self.kf.x[W_, 0].copy(), self.kf.P[6:, 6:].copy()
 
     def healthy(self) -> bool:
-        return bool(np.all(np.isfinite(self.kf.x)) and np.all(np.isfinite(self.kf.P)))
+        return bool(np.isfinite(self.kf.x).all() and np.isfinite(self.kf.P).all())
 
     # ----- internals ---------------------------------------------------------------------
     def _recentre(self):

@@ -322,7 +322,7 @@ class QuarterEstimator:
         if not cand:
             return
         # Ray angle between the oldest and newest views (rotation-compensated in odom). Only
-        # those two views are needed to decide; the few tracks that pass get all their views
+        # those two views are needed to decide; the tracks that pass get all their views
         # below (every step is per point and view, so the values are the same either way).
         R_oc, c_o, xy = self._views([[obs[0], obs[-1]] for obs in obs_of])
         rays = bearings_odom(R_oc, xy)
