@@ -5,6 +5,14 @@ rig extrinsics); nothing here chooses a scale. A track becomes a landmark once t
 its oldest and newest views (with a known fused pose) subtend `parallax_deg`; it is
 re-triangulated with more views when its parallax has grown by `refine_factor`, and dropped
 when it reprojects badly or falls behind the camera.
+
+Each landmark keeps the covariance its views' geometry gives it (triangulation_covariance).
+Why: treating landmarks as exact let a young landmark, triangulated from two consecutive
+fused poses, carry their relative error into the next camera pose *extrapolated* (the
+camera reports e_k + (e_k - e_(k-1))), so a yaw-rate error of the fused poses sustained
+itself through the map: the loop's heading crept ~0.05 deg per frame on straight stretches
+with all cameras agreeing. With the covariance in the measurement noise, such landmarks
+weigh little along their ray and the long-baseline ones hold the pose.
 """
 from typing import Dict
 
@@ -30,6 +38,25 @@ def triangulate_views(R_oc: np.ndarray, c_o: np.ndarray, xy: np.ndarray) -> np.n
     return Xh[:, :3] / w[:, None] + ref[:, 0, :]
 
 
+def triangulation_covariance(X: np.ndarray, R_oc: np.ndarray, c_o: np.ndarray,
+                             view_weights: np.ndarray, sigma_n: float) -> np.ndarray:
+    """Covariance (N, 3, 3) of triangulated points X (N, 3) from their views' image noise:
+    (sum_v w_v J_v^T J_v / sigma_n^2)^-1 with J_v the Jacobian of the normalized projection
+    in view v. Poses are taken as exact, so this is the geometry's share only: a point seen
+    over a short baseline is known along its ray far worse than across it.
+    view_weights (N, V): 1 per distinct view, 0 for a repeated one (short tracks repeat
+    views in the DLT's fixed-size list)."""
+    Xc = np.einsum('nvji,nvj->nvi', R_oc, X[:, None, :] - c_o)       # R_oc^T (X - c)
+    z = np.where(np.abs(Xc[..., 2]) > 1e-9, Xc[..., 2], 1e-9)
+    Jpi = np.zeros(z.shape + (2, 3))
+    Jpi[..., 0, 0] = Jpi[..., 1, 1] = 1.0 / z
+    Jpi[..., :, 2] = -Xc[..., :2] / (z * z)[..., None]
+    J = np.einsum('nvij,nvkj->nvik', Jpi, R_oc)                       # d(xy)/dX = Jpi R_oc^T
+    info = np.einsum('nv,nvji,nvjk->nik', view_weights, J, J) / (sigma_n * sigma_n)
+    # a tiny ridge keeps a degenerate (rotation-only) point invertible; checks drop it anyway
+    return np.linalg.inv(info + np.eye(3) * 1e-12)
+
+
 def bearings_odom(R_oc: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Unit rays in odom for normalized coordinates xy (..., 2) seen with rotations R_oc."""
     f = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)
@@ -47,26 +74,30 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 class LandmarkMap:
     def __init__(self, parallax_deg=2.0, max_reproj_px=2.0, min_depth=0.1, max_depth=200.0,
-                 refine_factor=2.0, focal_px=500.0):
+                 refine_factor=2.0, focal_px=500.0, pixel_sigma=1.0):
         self.parallax_deg = float(parallax_deg)
         self.max_reproj_px = float(max_reproj_px)
         self.min_depth = float(min_depth)
         self.max_depth = float(max_depth)
         self.refine_factor = float(refine_factor)
         self.focal_px = float(focal_px)      # converts normalized errors to pixels
+        self.sigma_n = float(pixel_sigma) / self.focal_px
         self.reset()
 
     def reset(self):
         self.points: Dict[int, np.ndarray] = {}
         self.parallax: Dict[int, float] = {}
+        self.covariances: Dict[int, np.ndarray] = {}
 
     def get_state(self) -> dict:
         return {'points': {k: v.copy() for k, v in self.points.items()},
-                'parallax': dict(self.parallax)}
+                'parallax': dict(self.parallax),
+                'covariances': {k: v.copy() for k, v in self.covariances.items()}}
 
     def set_state(self, s: dict):
         self.points = {int(k): np.array(v, float) for k, v in s['points'].items()}
         self.parallax = {int(k): float(v) for k, v in s['parallax'].items()}
+        self.covariances = {int(k): np.array(v, float) for k, v in s['covariances'].items()}
 
     def __len__(self):
         return len(self.points)
@@ -78,6 +109,10 @@ class LandmarkMap:
         X = np.array([self.points[i] for i in ids[has].tolist()]).reshape(-1, 3)
         return has, X
 
+    def covariances_of(self, ids: np.ndarray) -> np.ndarray:
+        """(M, 3, 3) covariances of landmarks `ids` (all must have one)."""
+        return np.array([self.covariances[i] for i in np.asarray(ids, np.int64).tolist()]).reshape(-1, 3, 3)
+
     def want(self, track_id: int, parallax_deg: float) -> bool:
         """Is a (re-)triangulation of this track worth doing at this parallax?"""
         if parallax_deg < self.parallax_deg:
@@ -86,7 +121,7 @@ class LandmarkMap:
         return old is None or parallax_deg >= self.refine_factor * old
 
     def triangulate(self, ids: np.ndarray, R_oc: np.ndarray, c_o: np.ndarray,
-                    xy: np.ndarray) -> np.ndarray:
+                    xy: np.ndarray, view_weights=None) -> np.ndarray:
         """Triangulate tracks `ids` from V views each (arrays as in triangulate_views, the
         first and last view being the widest pair) and keep those passing the checks:
         parallax at the point, positive depth in range, reprojection in every view.
@@ -105,9 +140,14 @@ class LandmarkMap:
         zs = np.where(depth > 1e-9, depth, 1e-9)
         err = np.linalg.norm(Xc[..., :2] / zs[..., None] - xy, axis=-1) * self.focal_px
         ok &= np.all(err < self.max_reproj_px, axis=1)
-        for i, X_i, p in zip(ids[ok].tolist(), X[ok], par[ok].tolist()):
+        if not ok.any():
+            return ok
+        w = np.ones(xy.shape[:2]) if view_weights is None else np.asarray(view_weights, float)
+        C = triangulation_covariance(X[ok], R_oc[ok], c_o[ok], w[ok], self.sigma_n)
+        for i, X_i, p, C_i in zip(ids[ok].tolist(), X[ok], par[ok].tolist(), C):
             self.points[i] = X_i
             self.parallax[i] = p
+            self.covariances[i] = C_i
         return ok
 
     def check(self, ids: np.ndarray, R_oc: np.ndarray, c_o: np.ndarray,
@@ -133,6 +173,7 @@ class LandmarkMap:
     def forget(self, track_id: int):
         self.points.pop(int(track_id), None)
         self.parallax.pop(int(track_id), None)
+        self.covariances.pop(int(track_id), None)
 
     def keep_only(self, live_ids):
         """Landmarks of tracks that no longer exist are of no use to a tracking-only map."""

@@ -142,9 +142,12 @@ class PoseEKF:
 
     # ----- update ------------------------------------------------------------------------
     def update(self, X: np.ndarray, z_obs: np.ndarray, sigma_uv, T_base_cam: np.ndarray,
-               gate_chi2: float = 9.21, min_depth: float = 0.05) -> np.ndarray:
+               gate_chi2: float = 9.21, min_depth: float = 0.05,
+               X_cov: np.ndarray = None) -> np.ndarray:
         """Fuse observed normalized coordinates z_obs (N x 2) of landmarks X (N x 3).
         sigma_uv: (su, sv) measurement std in normalized units. Returns the inlier mask.
+        X_cov (N x 3 x 3, optional): the landmarks' own covariances, projected into each
+        feature's noise (J_X C_X J_X^T), so a landmark known poorly along its ray weighs little.
         Each feature is gated on its own 2-dof Mahalanobis distance against the prior, so a
         gross outlier cannot drag the others; the accepted ones are fused in one update."""
         X = np.asarray(X, float).reshape(-1, 3)
@@ -155,6 +158,9 @@ class PoseEKF:
         uv, depth, H = self.project(X, T_base_cam)
         r = z_obs - uv
         Rm = np.diag(np.square(np.asarray(sigma_uv, float)))
+        if X_cov is not None:
+            Jx = -H[:, :, P_]                          # d(uv)/dX = -d(uv)/dp
+            Rm = Rm + Jx @ np.asarray(X_cov, float).reshape(-1, 3, 3) @ Jx.transpose(0, 2, 1)
         S = H @ self.kf.P @ H.transpose(0, 2, 1) + Rm
         det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
         valid = (depth > min_depth) & np.all(np.isfinite(r), axis=1) & (det > 0)
@@ -168,7 +174,13 @@ class PoseEKF:
         Hs = H[inl].reshape(-1, DIM)
         zs = z_obs[inl].reshape(-1, 1)
         hs = uv[inl].reshape(-1, 1)
-        Rs = np.kron(np.eye(int(inl.sum())), Rm)
+        if Rm.ndim == 2:
+            Rs = np.kron(np.eye(int(inl.sum())), Rm)
+        else:                                          # per-feature 2x2 blocks on the diagonal
+            n = int(inl.sum())
+            Rs = np.zeros((n, 2, n, 2))
+            Rs[np.arange(n), :, np.arange(n), :] = Rm[inl]
+            Rs = Rs.reshape(2 * n, 2 * n)
         if not self._guarded_update(zs, Hs, hs, Rs):
             return np.zeros(len(X), bool)
         return inl

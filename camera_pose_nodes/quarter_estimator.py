@@ -26,7 +26,7 @@ from camera_pose_nodes.quarter_region import QuarterRegion
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.rig import CameraMount
 
-STATE_VERSION = 1
+STATE_VERSION = 2     # 2: landmarks carry covariances
 STAGES = ('acquire', 'extract', 'track', 'pose', 'structure')
 _ROTATION_ONLY_POSITION_VARIANCE = 1.0e2   # m^2: 'position not measured', still < UNINFORMATIVE
 _TRIANGULATION_VIEWS = 5     # views per DLT: oldest, newest and evenly spaced between
@@ -53,6 +53,7 @@ PARAMETERS = {
     'parallel_chunks': (False, 'split extraction/tracking into ~min_features chunks on threads', None, None),
     'max_history': (60, 'observations kept per track for triangulation (oldest always kept)', 2, 10000),
     'pixel_sigma': (1.0, 'feature measurement noise (px, 1 sigma)', 0.05, 20.0),
+    'landmark_covariance': (True, "add each landmark's triangulation covariance to its reprojection noise (landmarks are not exact: see landmark_map)", None, None),
     'gate_chi2': (9.21, 'per-feature Mahalanobis gate (chi-square, 2 dof; 9.21 = 99 %)', 1.0, 100.0),
     'accel_sigma': (2.0, 'process noise: white linear acceleration (m/s^2/sqrt(Hz))', 1e-4, 100.0),
     'alpha_sigma': (2.0, 'process noise: white angular acceleration (rad/s^2/sqrt(Hz))', 1e-4, 100.0),
@@ -82,6 +83,7 @@ class QuarterParams:
     parallel_chunks: bool = PARAMETERS['parallel_chunks'][0]
     max_history: int = PARAMETERS['max_history'][0]
     pixel_sigma: float = PARAMETERS['pixel_sigma'][0]
+    landmark_covariance: bool = PARAMETERS['landmark_covariance'][0]
     gate_chi2: float = PARAMETERS['gate_chi2'][0]
     accel_sigma: float = PARAMETERS['accel_sigma'][0]
     alpha_sigma: float = PARAMETERS['alpha_sigma'][0]
@@ -140,7 +142,8 @@ class QuarterEstimator:
         self.tracker = KLTTracker(self.region, self.klt_cfg)
         self.ekf = PoseEKF(p.accel_sigma, p.alpha_sigma)
         self.landmarks = LandmarkMap(p.parallax_deg, p.max_reproj_px, p.min_depth, p.max_depth,
-                                     p.refine_factor, focal_px=0.5 * (intrinsics.fx + intrinsics.fy))
+                                     p.refine_factor, focal_px=0.5 * (intrinsics.fx + intrinsics.fy),
+                                     pixel_sigma=p.pixel_sigma)
         self.sigma_uv = (p.pixel_sigma / intrinsics.fx, p.pixel_sigma / intrinsics.fy)
         self.reset()
 
@@ -188,8 +191,10 @@ class QuarterEstimator:
         n_inliers = 0
         if len(X):
             xy = self.intrinsics.undistort_points(self.tracker.pts[has])
+            X_cov = (self.landmarks.covariances_of(self.tracker.ids[has])
+                     if self.params.landmark_covariance else None)
             inl = self.ekf.update(X, xy, self.sigma_uv, self.T_base_cam, self.params.gate_chi2,
-                                  self.params.min_depth)
+                                  self.params.min_depth, X_cov)
             n_inliers = int(inl.sum())
         n_epipolar = self._epipolar_update(stamp_ns, ~has) if self.params.epipolar else 0
         if not self.ekf.healthy():
@@ -329,8 +334,12 @@ class QuarterEstimator:
         par = angle_deg(rays[:, 0], rays[:, -1])
         want = [k for k, (i, p) in enumerate(zip(cand, par.tolist())) if lm.want(i, p)]
         if want:
-            views = [[obs_of[k][j] for j in _view_indices(len(obs_of[k]))] for k in want]
-            lm.triangulate(np.array(cand)[want], *self._views(views))
+            picks = [_view_indices(len(obs_of[k])) for k in want]
+            views = [[obs_of[k][j] for j in js] for k, js in zip(want, picks)]
+            # short tracks repeat views in the DLT's list: each distinct view counts once
+            distinct = np.array([[v == 0 or js[v] != js[v - 1] for v in range(len(js))]
+                                 for js in picks], float)
+            lm.triangulate(np.array(cand)[want], *self._views(views), view_weights=distinct)
 
     def _views(self, views):
         """(R_oc, c_o, xy) of observations (stamp, u, v) given as N rows of V views."""

@@ -51,3 +51,45 @@ def test_bad_reprojection_and_behind_camera_are_dropped():
     bad = lm.check(np.arange(20), R[0, -1], c[0, -1], obs)
     assert set(np.flatnonzero(bad)) == {3, 5}
     assert 3 not in lm.points and 5 not in lm.points and len(lm) == 18
+
+
+def test_covariance_matches_the_scatter_of_repeated_triangulations():
+    """triangulation_covariance predicts how the DLT's points scatter under pixel noise
+    (Monte Carlo over 400 noisy copies of one point); the short-baseline point is known far
+    worse along its ray (depth) than across it, and a repeated view adds nothing."""
+    rng = np.random.default_rng(3)
+    sigma_px, n = 0.5, 400
+    X0 = np.array([0.3, -0.2, 4.0])
+    for baseline in (0.2, 1.0):
+        R = np.broadcast_to(np.eye(3), (n, 2, 3, 3))
+        c = np.broadcast_to(np.array([[0, 0, 0], [baseline, 0, 0]], float), (n, 2, 3))
+        Xc = X0[None, None, :] - c
+        xy = Xc[..., :2] / Xc[..., 2:3] + rng.normal(0, sigma_px / F_PX, (n, 2, 2))
+        lm = LandmarkMap(parallax_deg=0.5, focal_px=F_PX, pixel_sigma=sigma_px, max_reproj_px=50)
+        assert lm.triangulate(np.arange(n), R, c, xy).all()
+        P = np.array([lm.points[i] for i in range(n)])
+        emp = np.cov(P.T)
+        pred = np.mean([lm.covariances[i] for i in range(n)], axis=0)
+        # depth variance to 25 %, the correlation structure to 0.1
+        assert abs(pred[2, 2] / emp[2, 2] - 1) < 0.25, (baseline, pred[2, 2], emp[2, 2])
+        corr = lambda C: C / np.sqrt(np.outer(np.diag(C), np.diag(C)))
+        assert np.max(np.abs(corr(pred) - corr(emp))) < 0.1
+        assert pred[2, 2] > 20 * max(pred[0, 0], pred[1, 1])        # along the ray
+        if baseline == 0.2:
+            short = pred[2, 2]
+    assert short > 10 * pred[2, 2]              # 5x the baseline: ~25x less depth variance
+    # a view listed twice (short tracks in the fixed-size DLT list) counts once
+    R = np.broadcast_to(np.eye(3), (1, 3, 3, 3))
+    c = np.array([[[0, 0, 0], [0, 0, 0], [1.0, 0, 0]]])
+    xy = (X0[None, None, :] - c)[..., :2] / (X0[2] - c[..., 2:3])
+    once = LandmarkMap(parallax_deg=0.5, focal_px=F_PX)
+    twice = LandmarkMap(parallax_deg=0.5, focal_px=F_PX)
+    once.triangulate([0], R, c, xy, view_weights=[[1, 0, 1]])
+    twice.triangulate([0], R, c, xy)
+    assert np.trace(once.covariances[0]) > 1.3 * np.trace(twice.covariances[0])
+    # hand-over carries the covariances; forgetting drops them
+    moved = LandmarkMap(parallax_deg=0.5, focal_px=F_PX)
+    moved.set_state(once.get_state())
+    assert np.array_equal(moved.covariances_of([0])[0], once.covariances[0])
+    moved.forget(0)
+    assert moved.covariances == {}

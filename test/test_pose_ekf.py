@@ -137,3 +137,38 @@ def test_epipolar_update_corrects_rotation_without_landmarks():
     # standing still: no baseline, no measurement
     ekf.reset(T1)
     assert not ekf.update_epipolar(c1, rays, xy2, 0.5 / F_PX, T_bc).any()
+
+
+def test_landmark_covariance_lowers_the_weight_of_poorly_known_landmarks():
+    """Half the landmarks are well known (long baseline: exact here); the other half are
+    young, triangulated 30 cm back along the path over a short baseline, and 5 % too far along
+    that view's rays. Taken as exact, the young ones drag the pose; with their covariance
+    ("known along that ray to 10 %") the old ones hold it. Gating keeps every feature."""
+    cam = paper_rig().camera('left')
+    T_bc = cam.T_base_cam
+    rng = np.random.default_rng(5)
+    T0 = se3.make_T(np.eye(3), [0.0, 0.0, 0.0])
+    T_oc = T0 @ T_bc
+    n = 60
+    dirs = np.column_stack([rng.uniform(-0.5, 0.5, (n, 2)), np.ones(n)])
+    Xc = dirs * rng.uniform(2, 6, n)[:, None]
+    X = Xc @ T_oc[:3, :3].T + T_oc[:3, 3]
+    z = Xc[:, :2] / Xc[:, 2:3]
+    young = np.arange(n) % 2 == 1
+    c_then = T_oc[:3, 3] - np.array([0.3, 0.0, 0.0])              # the young ones' view
+    ray = X - c_then
+    dist = np.linalg.norm(ray, axis=1)
+    ray /= dist[:, None]
+    X[young] = c_then + ray[young] * (1.05 * dist[young])[:, None]
+    C = np.array([(0.1 * d) ** 2 * np.outer(r, r) if y else np.zeros((3, 3))
+                  for d, r, y in zip(dist, ray, young)]) + 1e-10 * np.eye(3)
+    moved = {}
+    for name, cov in (('exact', None), ('with covariance', C)):
+        ekf = PoseEKF()
+        ekf.reset(T0)
+        ekf.kf.P[:6, :6] = np.eye(6) * 0.05 ** 2
+        inl = ekf.update(X, z, (1 / F_PX, 1 / F_PX), T_bc, gate_chi2=1e6, X_cov=cov)
+        assert inl.all()
+        moved[name] = np.linalg.norm(se3.pose_error(ekf.T_odom_base, T0))
+    assert moved['exact'] > 3e-3, moved
+    assert moved['with covariance'] < 0.4 * moved['exact'], moved      # measured 0.32x
