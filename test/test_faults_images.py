@@ -113,11 +113,12 @@ def test_photometric_faults_survive_and_recover(photometric_run, clean_run):
     # again (the cameras must first re-triangulate their landmarks), to the end.
     assert recovered_at <= t1 + 1.0, recovered_at
     # NOT MET: issue 5 asks for at most 2x the clean run's drift after recovery; measured
-    # 0.054 m vs 0.013 m (4.1x; 16.7x before the body EKF followed the arc in turns): the map
-    # is rebuilt at the end of a turn from poses the wheel dead-reckoned while three cameras
-    # were blind (scale set by the wheel's ~2 % bias). This bound locks today's figure
-    # (+~10 %); tighten it to 2 when fixed.
-    assert_recovered_drift(run, clean_run, recovered_at, factor=4.5)
+    # 0.101 m vs 0.030 m (3.3x; 4.1x before landmarks carried covariances, 16.7x before the
+    # body EKF followed the arc in turns): the maps are rebuilt at the end of a turn from
+    # poses the wheel dead-reckoned while three cameras were blind (scale set by the wheel's
+    # ~3 % bias), and young landmarks weigh little, so the wheel steers longer. This bound
+    # locks today's figure (+~10 %); tighten it to 2 when fixed.
+    assert_recovered_drift(run, clean_run, recovered_at, factor=3.7)
 
 
 # ---- timing faults (every third frame dropped for 2 s, a duplicate, a swapped pair) -----
