@@ -113,9 +113,9 @@ class GeneralFusion:
         return used
 
     def _with_floor(self, estimates: Mapping[str, PoseEstimate]) -> Dict[str, PoseEstimate]:
-        # Quarters treat their landmarks as exact, so a camera's covariance omits the map's
-        # own error (landmarks come from earlier fused poses): without this floor, cameras
-        # that agree to a few centimetres look thousands of sigmas apart after a turn.
+        # A landmark's covariance holds its image-noise share only, not the error of the
+        # fused poses it was triangulated from, so a camera's covariance omits that: without
+        # this floor, cameras that agree to a few cm look thousands of sigmas apart after a turn.
         fm, fr = self.params['camera_floor_std_m'], self.params['camera_floor_std_rad']
         if fm == 0.0 and fr == 0.0:
             return dict(estimates)

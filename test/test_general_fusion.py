@@ -123,7 +123,7 @@ def test_rig_scale_hook_reports_scale_observed():
 
 def test_camera_floor_keeps_overconfident_but_agreeing_cameras():
     # Four cameras 1-2 cm / 0.1 deg apart, each claiming 1 mm / 0.01 deg: what quarters report
-    # after a turn, since they treat their landmarks as exact. Without the floor the median
+    # after a turn (their landmarks' covariances leave out the fused poses' error). Without the floor the median
     # rejects every one of them (the fusion would dead-reckon); with it all are used.
     tight = np.diag([1e-3] * 3 + [1.7e-4] * 3) ** 2
     offsets = {'front': [0.01, 0, 0, 0, 0, 0.0017], 'left': [-0.01, 0.01, 0, 0, 0, 0],
