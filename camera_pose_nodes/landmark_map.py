@@ -38,15 +38,15 @@ def triangulate_views(R_oc: np.ndarray, c_o: np.ndarray, xy: np.ndarray) -> np.n
     return Xh[:, :3] / w[:, None] + ref[:, 0, :]
 
 
-def triangulation_covariance(X: np.ndarray, R_oc: np.ndarray, c_o: np.ndarray,
-                             view_weights: np.ndarray, sigma_n: float) -> np.ndarray:
-    """Covariance (N, 3, 3) of triangulated points X (N, 3) from their views' image noise:
+def triangulation_covariance(Xc: np.ndarray, R_oc: np.ndarray, view_weights: np.ndarray,
+                             sigma_n: float) -> np.ndarray:
+    """Covariance (N, 3, 3) of triangulated points from their views' image noise:
     (sum_v w_v J_v^T J_v / sigma_n^2)^-1 with J_v the Jacobian of the normalized projection
-    in view v. Poses are taken as exact, so this is the geometry's share only: a point seen
-    over a short baseline is known along its ray far worse than across it.
+    in view v. Xc (N, V, 3): each point in each view's camera frame, R_oc^T (X - c).
+    Poses are taken as exact, so this is the geometry's share only: a point seen over a
+    short baseline is known along its ray far worse than across it.
     view_weights (N, V): 1 per distinct view, 0 for a repeated one (short tracks repeat
     views in the DLT's fixed-size list)."""
-    Xc = np.einsum('nvji,nvj->nvi', R_oc, X[:, None, :] - c_o)       # R_oc^T (X - c)
     z = np.where(np.abs(Xc[..., 2]) > 1e-9, Xc[..., 2], 1e-9)
     Jpi = np.zeros(z.shape + (2, 3))
     Jpi[..., 0, 0] = Jpi[..., 1, 1] = 1.0 / z
@@ -143,7 +143,7 @@ class LandmarkMap:
         if not ok.any():
             return ok
         w = np.ones(xy.shape[:2]) if view_weights is None else np.asarray(view_weights, float)
-        C = triangulation_covariance(X[ok], R_oc[ok], c_o[ok], w[ok], self.sigma_n)
+        C = triangulation_covariance(Xc[ok], R_oc[ok], w[ok], self.sigma_n)
         for i, X_i, p, C_i in zip(ids[ok].tolist(), X[ok], par[ok].tolist(), C):
             self.points[i] = X_i
             self.parallax[i] = p

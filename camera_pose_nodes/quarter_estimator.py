@@ -38,6 +38,13 @@ def _view_indices(n_views: int) -> tuple:
     # quarter and frame, a few percent of a worker's CPU).
     return tuple(np.linspace(0, n_views - 1, _TRIANGULATION_VIEWS).round().astype(int).tolist())
 
+
+@lru_cache(maxsize=None)
+def _distinct_views(n_views: int) -> tuple:
+    # 1 for each view _view_indices lists first, 0 for a repeat (short tracks repeat views)
+    js = _view_indices(n_views)
+    return tuple(1.0 if v == 0 or js[v] != js[v - 1] else 0.0 for v in range(len(js)))
+
 # name -> (default, description, min, max). The node declares its ROS parameters from this.
 PARAMETERS = {
     'min_features': (40, "extract new features when fewer are tracked (paper's Min)", 4, 1000),
@@ -334,11 +341,8 @@ class QuarterEstimator:
         par = angle_deg(rays[:, 0], rays[:, -1])
         want = [k for k, (i, p) in enumerate(zip(cand, par.tolist())) if lm.want(i, p)]
         if want:
-            picks = [_view_indices(len(obs_of[k])) for k in want]
-            views = [[obs_of[k][j] for j in js] for k, js in zip(want, picks)]
-            # short tracks repeat views in the DLT's list: each distinct view counts once
-            distinct = np.array([[v == 0 or js[v] != js[v - 1] for v in range(len(js))]
-                                 for js in picks], float)
+            views = [[obs_of[k][j] for j in _view_indices(len(obs_of[k]))] for k in want]
+            distinct = np.array([_distinct_views(len(obs_of[k])) for k in want])
             lm.triangulate(np.array(cand)[want], *self._views(views), view_weights=distinct)
 
     def _views(self, views):
