@@ -27,7 +27,9 @@ PARAMETERS = {
     'median_mahalanobis_gate': (CHI2_6DOF_999, 'chi-square (6 dof) gate of a camera against the cross-camera median', 1.0, 1e6),
     'median_max_translation_m': (0.5, 'absolute gate: a camera farther than this from the median is rejected (m)', 0.01, 100.0),
     'median_max_rotation_rad': (0.2, 'absolute gate: a camera rotated more than this from the median is rejected (rad)', 0.001, 3.15),
-    'median_use_prior': (True, 'with fewer than 3 cameras, let the EKF prediction vote in the median', None, None),
+    'median_use_prior': (True, 'let the EKF prediction vote in the median (see median_prior_max_cameras)', None, None),
+    'median_prior_max_cameras': (8, 'the EKF prediction votes while at most this many cameras are informative: 2 = only where the cameras cannot out-vote one another; 8 = always (breaks 2-2 ties)', 0, 64),
+    'median_weighted': (True, 'weight each vote in the median by its precision (1 / RMS std): loose cameras cannot move it', None, None),
     'camera_correlation': (0.0, 'assumed error correlation between cameras (shared fed-back landmarks); inflates the fused covariance by 1+(n-1)rho', 0.0, 1.0),
     'camera_floor_std_m': (0.005, 'added to every camera estimate: position std of the landmark-map error the quarters leave out (m)', 0.0, 10.0),
     'camera_floor_std_rad': (0.002, 'added to every camera estimate: rotation std of the landmark-map error (rad)', 0.0, 1.0),
@@ -138,7 +140,7 @@ class GeneralFusion:
         prior = (self.ekf.T, self.ekf.pose_covariance) if p['median_use_prior'] and self.has_tracked else None
         camera_estimates = self._with_floor(camera_estimates)
         med = median_filter(dict(camera_estimates), p['median_mahalanobis_gate'], p['median_max_translation_m'],
-                            p['median_max_rotation_rad'], prior)
+                            p['median_max_rotation_rad'], prior, p['median_prior_max_cameras'], p['median_weighted'])
         out_rejected = dict(med.rejected)
         missing = sorted(set(self.rig.names) - set(camera_estimates)) + sorted(med.uninformative)
         used: List[str] = []

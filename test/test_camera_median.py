@@ -58,6 +58,36 @@ def test_prior_breaks_tie_between_two_cameras():
     assert set(with_prior.inliers) == {'a'} and 'b' in with_prior.rejected
 
 
+def test_prior_breaks_two_two_tie():
+    # After a blackout two cameras with young maps may agree with each other and not with
+    # the two others: the plain median sits between the pairs and rejects all four (or keeps
+    # whichever pair rounding favours); the prediction's vote decides.
+    ests = {'a': cam('a', np.zeros(6)), 'b': cam('b', np.zeros(6)),
+            'c': cam('c', [0.3, 0, 0, 0, 0, 0]), 'd': cam('d', [0.3, 0, 0, 0, 0, 0])}
+    tie = median_filter(ests, max_translation_m=0.12)
+    assert set(tie.rejected) == {'a', 'b', 'c', 'd'}
+    assert set(median_filter(ests, max_translation_m=0.12, prior=(T0, COV), prior_max_cameras=2).rejected) \
+        == {'a', 'b', 'c', 'd'}                        # 4 cameras > 2: the prior does not vote
+    voted = median_filter(ests, max_translation_m=0.12, prior=(T0, COV), prior_max_cameras=8)
+    assert set(voted.inliers) == {'a', 'b'} and set(voted.rejected) == {'c', 'd'}
+
+
+def test_weighted_median_is_not_moved_by_loose_cameras():
+    # Two cameras tracked (1 cm) and two whose position is unknown (10 m std, rotation only,
+    # as when their quarters see nothing but epipolar lines), 10 cm apart.
+    tight = np.diag([0.01] * 3 + [0.01] * 3) ** 2
+    loose = np.diag([10.0] * 3 + [0.01] * 3) ** 2
+    ests = {'a': PoseEstimate(1, T0, tight, source='a', state='tracking'),
+            'b': PoseEstimate(1, T0, tight, source='b', state='tracking'),
+            'c': PoseEstimate(1, se3.perturb(T0, [0.1, 0, 0, 0, 0, 0]), loose, source='c', state='tracking'),
+            'd': PoseEstimate(1, se3.perturb(T0, [0.1, 0, 0, 0, 0, 0]), loose, source='d', state='tracking')}
+    plain = median_filter(ests)
+    assert {'a', 'b'} <= set(plain.rejected)             # 5 cm from the midpoint = 5 sigma
+    weighted = median_filter(ests, weighted=True)
+    assert set(weighted.inliers) == {'a', 'b', 'c', 'd'}
+    assert np.linalg.norm(se3.pose_error(weighted.T_median, T0)[:3]) < 1e-3
+
+
 def test_no_informative_camera():
     r = median_filter({'a': uninformative(1, np.eye(4), 'a', 'initializing')})
     assert r.T_median is None and not r.inliers and r.uninformative == ['a']
