@@ -27,6 +27,7 @@ from rclpy.parameter import Parameter
 
 from multicam_ego_motion.coordinator import control
 from multicam_ego_motion.errors import UserError
+from multicam_ego_motion.lean_node import strip_event_handlers
 
 PR_SET_PDEATHSIG = 1
 LINK_TIMEOUT_S = 2.0       # longest wait for a moved node's topics to be matched
@@ -66,21 +67,6 @@ def create_node(spec: dict, params_file: str = None):
     overrides.append(Parameter('start_type_description_service', value=False))
     return node_class(spec['kind'])(namespace=spec['namespace'], parameter_overrides=overrides,
                                     cli_args=cli_args, start_parameter_services=False)
-
-
-def strip_event_handlers(node, keep=lambda topic: topic.endswith('/image_raw')):
-    """Remove the QoS event handlers rclpy gives every publisher and subscription (they
-    log incompatible-QoS warnings) except on `keep` topics. Each is a waitable that the
-    SingleThreadedExecutor adds to its wait set, in Python, before every wait: with 21 nodes
-    they were most of an idle worker's CPU. The graph's own topics are all reliable and
-    ours; the camera images (sensor-data QoS vs a driver's) keep theirs."""
-    for ent in list(node.publishers) + list(node.subscriptions):
-        if keep(ent.topic_name):
-            continue
-        for h in ent.event_handlers:
-            node.remove_waitable(h)
-            h.destroy()
-        ent.event_handlers = []
 
 
 def linked(node) -> bool:
