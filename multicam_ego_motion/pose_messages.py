@@ -28,12 +28,19 @@ def fill_pose(pose, T: np.ndarray):
     return pose
 
 
+def covariance_field(C) -> np.ndarray:
+    """A 6x6 covariance as the value of a message's covariance field: a float64 array (a
+    copy), which rclpy's setter takes as is; a list of floats it checks element by element
+    in Python (~40 us a field). Same values, same bytes on the wire."""
+    return np.array(C, dtype=np.float64).reshape(36)
+
+
 def estimate_to_msg(est: PoseEstimate, frame_id: str = 'odom') -> PoseWithCovarianceStamped:
     msg = PoseWithCovarianceStamped()
     msg.header.stamp = ns_to_stamp(est.stamp_ns)
     msg.header.frame_id = frame_id
     fill_pose(msg.pose.pose, est.T_odom_base)
-    msg.pose.covariance = [float(v) for v in np.asarray(est.covariance).reshape(36)]
+    msg.pose.covariance = covariance_field(est.covariance)
     return msg
 
 

@@ -102,9 +102,10 @@ class Worker:
         # One timer polls every hosted node's timeouts (each node's own timer is removed):
         # 21 timers at 10 Hz were ~200 executor wake-ups a second, each a wait-set rebuild.
         self.poller = self.node.create_timer(NODE_POLL_S, self.poll_nodes)
-        # The quarters' /diagnostics statuses, batched per frame stamp: one message per
-        # worker and frame instead of one per quarter (a publish to the other processes'
-        # subscribers, the recorder's and the coordinator's, cost ~0.3-2 ms of CPU here).
+        # The hosted nodes' /diagnostics statuses (quarters, arbiters), batched per frame
+        # stamp: one message per worker and frame instead of one per node (a publish to the
+        # other processes' subscribers, the recorder's and the coordinator's, cost ~0.3-2 ms
+        # of CPU here, and each is a wake-up of the replay process).
         from diagnostic_msgs.msg import DiagnosticArray
 
         from multicam_ego_motion.qos import RELIABLE
@@ -121,8 +122,9 @@ class Worker:
         key = (stamp.sec, stamp.nanosec)
         batch = self.diag_batches.setdefault(key, (stamp, []))[1]
         batch.append(status)
-        quarters = {f'ego_motion/{k}' for k, n in self.hosted.items() if getattr(n, 'diag_sink', None)}
-        if quarters <= {s.name for s in batch}:
+        # complete when every hosted node that reports has: its status name is its key's
+        expected = {f'ego_motion/{k}' for k, n in self.hosted.items() if getattr(n, 'diag_sink', None)}
+        if expected <= {s.name for s in batch}:
             self.flush_diagnostics(key)
 
     def flush_diagnostics(self, key=None):
