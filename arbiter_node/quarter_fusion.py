@@ -18,7 +18,7 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 from scipy.stats import chi2
 
-from arbiter_node.covariance import condition_covariance, mahalanobis2, safe_inverse
+from arbiter_node.covariance import condition_covariance, safe_inverse
 from camera_pose_nodes.pose_estimate import UNINFORMATIVE_VARIANCE, PoseEstimate, uninformative
 from multicam_ego_motion import se3
 
@@ -74,9 +74,10 @@ def pair_d2_matrix(estimates: Sequence[PoseEstimate]) -> List[List[float]]:
         for j in range(i + 1, n):
             b = estimates[j]
             info = safe_inverse(a.covariance + b.covariance)
-            for r, c, Ta, Tb in ((i, j, a.T_odom_base, b.T_odom_base), (j, i, b.T_odom_base, a.T_odom_base)):
+            for r, c, Ta, Tb in ((i, j, a.T_odom_base, b.T_odom_base),
+                                 (j, i, b.T_odom_base, a.T_odom_base)):
                 e = se3.pose_error(Ta, Tb)
-                d2[r][c] = float(e @ info @ e)      # mahalanobis2's arithmetic
+                d2[r][c] = float(e @ info @ e)      # covariance.mahalanobis2's arithmetic
     return d2
 
 
