@@ -1,4 +1,6 @@
 """Conversions between the cores' numpy types and ROS messages (stamps, poses, covariances)."""
+import math
+
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
@@ -47,8 +49,11 @@ def estimate_to_msg(est: PoseEstimate, frame_id: str = 'odom') -> PoseWithCovari
 def msg_to_estimate(msg: PoseWithCovarianceStamped, source: str = '') -> PoseEstimate:
     """An estimate whose covariance is the uninformative one comes from a source that is
     initializing or lost (the message has no state field)."""
-    cov = np.array(msg.pose.covariance, dtype=float).reshape(6, 6)
-    informative = bool(np.all(np.isfinite(cov))) and float(np.max(np.diag(cov))) < 0.5 * UNINFORMATIVE_VARIANCE
+    values = [float(v) for v in msg.pose.covariance]
+    cov = np.array(values).reshape(6, 6)
+    # plain floats: numpy's reductions on 36 numbers took half of this function's ~35 us
+    informative = (all(map(math.isfinite, values))
+                   and max(values[::7]) < 0.5 * UNINFORMATIVE_VARIANCE)     # [::7]: the diagonal
     return PoseEstimate(stamp_to_ns(msg.header.stamp), pose_to_T(msg.pose.pose), cov,
                         source=source, state='tracking' if informative else 'initializing')
 
