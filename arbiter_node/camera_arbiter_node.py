@@ -42,6 +42,7 @@ class CameraArbiterNode(Node):
         self.sync = StampSynchronizer(sources, p['sync_timeout_s'])
         self.pub = self.create_publisher(PoseWithCovarianceStamped, 'pose', RELIABLE)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
+        self.diag_sink = None        # hook(stamp, status): the worker batches statuses per frame
         for s in sources:
             self.create_subscription(PoseWithCovarianceStamped, f'{s}/pose',
                                      lambda m, s=s: self.on_quarter(s, m), RELIABLE)
@@ -66,10 +67,10 @@ class CameraArbiterNode(Node):
             ms = (time.thread_time() - t0) * 1e3
             level = 'warn' if g.missing or not fused.informative else 'ok'
             text = f'missing quarters: {", ".join(g.missing)}' if g.missing else fused.state
-            self.pub_diag.publish(diagnostics.array(ns_to_stamp(g.stamp_ns), [diagnostics.status(
+            diagnostics.emit(ns_to_stamp(g.stamp_ns), diagnostics.status(
                 f'ego_motion/{self.camera}/arbiter', level, text,
                 {'quarters': len(g.items), 'state': fused.state, 'arbiter_ms': ms},
-                hardware_id=self.camera)]))
+                hardware_id=self.camera), self.diag_sink, self.pub_diag)
 
 
 def main(args=None):

@@ -26,8 +26,9 @@ from multicam_ego_motion import diagnostics
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.node_main import spin_node
 from multicam_ego_motion.node_parameters import declare_from_table
-from multicam_ego_motion.pose_messages import (estimate_to_msg, fill_pose, msg_to_estimate,
-                                               ns_to_stamp, stamp_to_ns, transform_msg)
+from multicam_ego_motion.pose_messages import (covariance_field, estimate_to_msg, fill_pose,
+                                               msg_to_estimate, ns_to_stamp, stamp_to_ns,
+                                               transform_msg)
 from multicam_ego_motion.qos import RELIABLE
 from multicam_ego_motion.rig import load_rig
 from multicam_ego_motion.se3 import is_valid_covariance
@@ -66,6 +67,7 @@ class GeneralArbiterNode(Node):
         self.path = PathHistory(p['path_min_spacing_m'], p['path_min_turn_rad'], p['path_max_poses'],
                                 p['path_publish_period_s'])
         self.on_frame_done = None            # hook(node) after a frame was published (snapshots)
+        self.diag_sink = None                # hook(stamp, status): the worker batches statuses per frame
         self.pub_fused = self.create_publisher(PoseWithCovarianceStamped, '/ego_motion/fused_pose', RELIABLE)
         self.pub_odom = self.create_publisher(Odometry, '/odom', RELIABLE)
         self.pub_tf = self.create_publisher(TFMessage, '/tf', RELIABLE)
@@ -141,11 +143,11 @@ class GeneralArbiterNode(Node):
         odom.header.frame_id = odom_frame
         odom.child_frame_id = base_frame
         fill_pose(odom.pose.pose, fused.T_odom_base)
-        odom.pose.covariance = [float(v) for v in fused.pose_covariance.reshape(36)]
+        odom.pose.covariance = covariance_field(fused.pose_covariance)
         t = odom.twist.twist
         t.linear.x, t.linear.y, t.linear.z, t.angular.x, t.angular.y, t.angular.z = (
             float(v) for v in fused.twist)
-        odom.twist.covariance = [float(v) for v in fused.twist_covariance.reshape(36)]
+        odom.twist.covariance = covariance_field(fused.twist_covariance)
         if self.p['publish_tf']:
             self.pub_tf.publish(TFMessage(transforms=[transform_msg(
                 fused.T_odom_base, odom_frame, base_frame, fused.stamp_ns)]))
@@ -159,11 +161,11 @@ class GeneralArbiterNode(Node):
             parts.append(f'no estimate from cameras: {", ".join(missing)}')
         if fused.cameras_rejected:
             parts.append('rejected: ' + ', '.join(f'{k} ({v})' for k, v in fused.cameras_rejected.items()))
-        self.pub_diag.publish(diagnostics.array(stamp, [diagnostics.status(
+        diagnostics.emit(stamp, diagnostics.status(
             'ego_motion/general_arbiter', level, '; '.join(parts),
             {'state': fused.state, 'scale_observed': fused.scale_observed,
              'cameras_used': ','.join(fused.cameras_used), 'cameras_missing': ','.join(missing),
-             'arbiter_ms': ms})]))
+             'arbiter_ms': ms}), self.diag_sink, self.pub_diag)
 
 
 def main(args=None):

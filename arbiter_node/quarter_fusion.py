@@ -18,7 +18,7 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 from scipy.stats import chi2
 
-from arbiter_node.covariance import condition_covariance, mahalanobis2, safe_inverse
+from arbiter_node.covariance import condition_covariance, safe_inverse
 from camera_pose_nodes.pose_estimate import UNINFORMATIVE_VARIANCE, PoseEstimate, uninformative
 from multicam_ego_motion import se3
 
@@ -63,20 +63,37 @@ def information_fusion(poses: Sequence[np.ndarray], covs: Sequence[np.ndarray],
     return T, condition_covariance(cov)
 
 
-def _pair_d2(a: PoseEstimate, b: PoseEstimate) -> float:
-    return mahalanobis2(se3.pose_error(a.T_odom_base, b.T_odom_base), a.covariance + b.covariance)
-
-
-def robust_reference(estimates: Sequence[PoseEstimate]) -> int:
-    """Index of the medoid (smallest summed capped pairwise Mahalanobis distance); ties go to
-    the most confident (smallest log-det covariance), which decides the 2-estimate case."""
+def pair_d2_matrix(estimates: Sequence[PoseEstimate]) -> List[List[float]]:
+    """d2[i][j] = mahalanobis2(pose_error(T_i, T_j), C_i + C_j), 0 on the diagonal. C_i + C_j
+    and C_j + C_i are the same matrix (float addition commutes), so its inverse is computed
+    once per pair: the same numbers at half the cost."""
     n = len(estimates)
-    scores = []
+    d2 = [[0.0] * n for _ in range(n)]
     for i in range(n):
-        s = sum(min(_pair_d2(estimates[i], estimates[j]), _MEDOID_CAP) for j in range(n) if j != i)
-        logdet = float(np.linalg.slogdet(estimates[i].covariance)[1])
-        scores.append((round(s, 9), logdet, i))
-    return min(scores)[2]
+        a = estimates[i]
+        for j in range(i + 1, n):
+            b = estimates[j]
+            info = safe_inverse(a.covariance + b.covariance)
+            for r, c, Ta, Tb in ((i, j, a.T_odom_base, b.T_odom_base),
+                                 (j, i, b.T_odom_base, a.T_odom_base)):
+                e = se3.pose_error(Ta, Tb)
+                d2[r][c] = float(e @ info @ e)      # covariance.mahalanobis2's arithmetic
+    return d2
+
+
+def robust_reference(estimates: Sequence[PoseEstimate], d2: Optional[List[List[float]]] = None) -> int:
+    """Index of the medoid (smallest summed capped pairwise Mahalanobis distance); ties go to
+    the most confident (smallest log-det covariance), which decides the 2-estimate case.
+    d2: pair_d2_matrix(estimates) when the caller has it already."""
+    n = len(estimates)
+    if d2 is None:
+        d2 = pair_d2_matrix(estimates)
+    scores = [round(sum(min(d2[i][j], _MEDOID_CAP) for j in range(n) if j != i), 9) for i in range(n)]
+    best = min(scores)
+    tied = [i for i in range(n) if scores[i] == best]
+    if len(tied) == 1:
+        return tied[0]
+    return min((float(np.linalg.slogdet(estimates[i].covariance)[1]), i) for i in tied)[1]
 
 
 def aggregate_stage_ms(estimates: Sequence[PoseEstimate]) -> Dict[str, float]:
@@ -119,10 +136,12 @@ def fuse_quarters_report(estimates: List[PoseEstimate], source: str,
         report.estimate = uninformative(stamp, prior, source, state, **kw)
         return report
 
-    ref = good[robust_reference(good)]
+    d2_pairs = pair_d2_matrix(good)
+    r = robust_reference(good, d2_pairs)
+    ref = good[r]
     inliers = []
-    for e in good:
-        d2 = 0.0 if e is ref else _pair_d2(e, ref)
+    for i, e in enumerate(good):
+        d2 = d2_pairs[i][r]
         if d2 > outlier_chi2:
             report.rejected[e.source] = f'mahalanobis {d2:.1f} > {outlier_chi2:.1f} to {ref.source}'
         else:

@@ -192,10 +192,7 @@ class QuarterNode(Node):
             stamp = self.get_clock().now().to_msg()
         status = diagnostics.status(f'ego_motion/{self.source}', level, message, values,
                                     hardware_id=self.camera.name)
-        if self.diag_sink is not None:
-            self.diag_sink(stamp, status)
-        else:
-            self.pub_diag.publish(diagnostics.array(stamp, [status]))
+        diagnostics.emit(stamp, status, self.diag_sink, self.pub_diag)
 
 
 def main(args=None):

@@ -23,5 +23,14 @@ def array(stamp, statuses) -> DiagnosticArray:
     return msg
 
 
+def emit(stamp, status: DiagnosticStatus, sink, publisher):
+    """A node's status for one frame: into its worker's per-frame batch when the worker gave
+    it a `sink` (coordinator/worker.py), else published on its own."""
+    if sink is not None:
+        sink(stamp, status)
+    else:
+        publisher.publish(array(stamp, [status]))
+
+
 def values_of(st: DiagnosticStatus) -> dict:
     return {kv.key: kv.value for kv in st.values}

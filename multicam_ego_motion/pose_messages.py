@@ -1,4 +1,6 @@
 """Conversions between the cores' numpy types and ROS messages (stamps, poses, covariances)."""
+import math
+
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
@@ -28,20 +30,30 @@ def fill_pose(pose, T: np.ndarray):
     return pose
 
 
+def covariance_field(C) -> np.ndarray:
+    """A 6x6 covariance as the value of a message's covariance field: a float64 array (a
+    copy), which rclpy's setter takes as is; a list of floats it checks element by element
+    in Python (~40 us a field). Same values, same bytes on the wire."""
+    return np.array(C, dtype=np.float64).reshape(36)
+
+
 def estimate_to_msg(est: PoseEstimate, frame_id: str = 'odom') -> PoseWithCovarianceStamped:
     msg = PoseWithCovarianceStamped()
     msg.header.stamp = ns_to_stamp(est.stamp_ns)
     msg.header.frame_id = frame_id
     fill_pose(msg.pose.pose, est.T_odom_base)
-    msg.pose.covariance = [float(v) for v in np.asarray(est.covariance).reshape(36)]
+    msg.pose.covariance = covariance_field(est.covariance)
     return msg
 
 
 def msg_to_estimate(msg: PoseWithCovarianceStamped, source: str = '') -> PoseEstimate:
     """An estimate whose covariance is the uninformative one comes from a source that is
     initializing or lost (the message has no state field)."""
-    cov = np.array(msg.pose.covariance, dtype=float).reshape(6, 6)
-    informative = bool(np.all(np.isfinite(cov))) and float(np.max(np.diag(cov))) < 0.5 * UNINFORMATIVE_VARIANCE
+    values = [float(v) for v in msg.pose.covariance]
+    cov = np.array(values).reshape(6, 6)
+    # plain floats: numpy's reductions on 36 numbers took half of this function's ~35 us
+    informative = (all(map(math.isfinite, values))
+                   and max(values[::7]) < 0.5 * UNINFORMATIVE_VARIANCE)     # [::7]: the diagonal
     return PoseEstimate(stamp_to_ns(msg.header.stamp), pose_to_T(msg.pose.pose), cov,
                         source=source, state='tracking' if informative else 'initializing')
 

@@ -177,6 +177,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
     from multicam_ego_motion.bag.recorder import BagRecorder
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
     from multicam_ego_motion.coordinator.coordinator import Coordinator
+    from multicam_ego_motion.lean_node import LeanNode
     from multicam_ego_motion.qos import RELIABLE
     from nav_msgs.msg import Odometry
 
@@ -187,7 +188,9 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
     # No rclpy signal handlers: on Ctrl-C they invalidate the context under the spinning
     # thread; Python's KeyboardInterrupt reaches the finally below, which closes in order.
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node('ego_motion_replay')
+    # Player, recorder and coordinator share this node: ~30 wake-ups a frame, each walks the
+    # wait set (LeanNode: without the QoS event handlers of its ~25 publishers/subscriptions).
+    node = LeanNode('ego_motion_replay')
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     stopping = threading.Event()

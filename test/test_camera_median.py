@@ -91,3 +91,31 @@ def test_weighted_median_is_not_moved_by_loose_cameras():
 def test_no_informative_camera():
     r = median_filter({'a': uninformative(1, np.eye(4), 'a', 'initializing')})
     assert r.T_median is None and not r.inliers and r.uninformative == ['a']
+
+
+def _weiszfeld_numpy(points, iterations=50, eps=1e-9):
+    """The array formulation weiszfeld() replaces (kept as the reference for its bits)."""
+    x = np.median(points, axis=0)
+    for _ in range(iterations):
+        d = np.linalg.norm(points - x, axis=1)
+        if np.any(d < eps):
+            return points[np.argmin(d)].copy()
+        w = 1.0 / d
+        x_new = (w[:, None] * points).sum(axis=0) / w.sum()
+        if np.linalg.norm(x_new - x) < eps:
+            return x_new
+        x = x_new
+    return x
+
+
+def test_weiszfeld_has_the_bits_of_the_numpy_formulation():
+    # The graph and the sequential pipeline must give the same odometry bit for bit, and
+    # runs before the plain-float rewrite too: same operations, same order.
+    rng = np.random.default_rng(7)
+    for n in (1, 2, 3, 4, 5):
+        for _ in range(400):
+            pts = rng.normal(size=(n, 3)) * 10 ** rng.uniform(-6, 1)
+            if rng.random() < 0.1:
+                pts[-1] = pts[0]                 # a duplicate: the "sitting on a sample" exit
+            assert np.array_equal(weiszfeld(pts), _weiszfeld_numpy(pts))
+            assert np.array_equal(weiszfeld(pts, iterations=3), _weiszfeld_numpy(pts, iterations=3))

@@ -11,7 +11,11 @@ from multicam_ego_motion.scenarios.generator import generate
 from replay_run import replay
 
 RATE = 8
-START_S, DURATION_S = 4.0, 6.0      # textured until ~6.7 s, then the bare stretch (left camera)
+# Textured until ~6.7 s, then the bare stretch (left camera). With the arbiters' few ms the
+# two workers start balanced, so the imbalance builds from the bare wall on and the 10-frame
+# hysteresis ends ~3.5-5 s in: 8 s leave room (6 s did while the general arbiter's 7-13 ms
+# made worker 0 start ~10 % heavier).
+START_S, DURATION_S = 4.0, 8.0
 FRAMES = int(DURATION_S * RATE)
 STAGES = ('acquire_ms', 'extract_ms', 'track_ms', 'pose_ms', 'structure_ms')
 

@@ -27,6 +27,7 @@ from rclpy.parameter import Parameter
 
 from multicam_ego_motion.coordinator import control
 from multicam_ego_motion.errors import UserError
+from multicam_ego_motion.lean_node import strip_event_handlers
 
 PR_SET_PDEATHSIG = 1
 LINK_TIMEOUT_S = 2.0       # longest wait for a moved node's topics to be matched
@@ -68,21 +69,6 @@ def create_node(spec: dict, params_file: str = None):
                                     cli_args=cli_args, start_parameter_services=False)
 
 
-def strip_event_handlers(node, keep=lambda topic: topic.endswith('/image_raw')):
-    """Remove the QoS event handlers rclpy gives every publisher and subscription (they
-    log incompatible-QoS warnings) except on `keep` topics. Each is a waitable that the
-    SingleThreadedExecutor adds to its wait set, in Python, before every wait: with 21 nodes
-    they were most of an idle worker's CPU. The graph's own topics are all reliable and
-    ours; the camera images (sensor-data QoS vs a driver's) keep theirs."""
-    for ent in list(node.publishers) + list(node.subscriptions):
-        if keep(ent.topic_name):
-            continue
-        for h in ent.event_handlers:
-            node.remove_waitable(h)
-            h.destroy()
-        ent.event_handlers = []
-
-
 def linked(node) -> bool:
     """Every input has a publisher and every estimate output a subscriber: a moved node must
     not miss the next frame because discovery was still under way."""
@@ -116,9 +102,10 @@ class Worker:
         # One timer polls every hosted node's timeouts (each node's own timer is removed):
         # 21 timers at 10 Hz were ~200 executor wake-ups a second, each a wait-set rebuild.
         self.poller = self.node.create_timer(NODE_POLL_S, self.poll_nodes)
-        # The quarters' /diagnostics statuses, batched per frame stamp: one message per
-        # worker and frame instead of one per quarter (a publish to the other processes'
-        # subscribers, the recorder's and the coordinator's, cost ~0.3-2 ms of CPU here).
+        # The hosted nodes' /diagnostics statuses (quarters, arbiters), batched per frame
+        # stamp: one message per worker and frame instead of one per node (a publish to the
+        # other processes' subscribers, the recorder's and the coordinator's, cost ~0.3-2 ms
+        # of CPU here, and each is a wake-up of the replay process).
         from diagnostic_msgs.msg import DiagnosticArray
 
         from multicam_ego_motion.qos import RELIABLE
@@ -135,8 +122,9 @@ class Worker:
         key = (stamp.sec, stamp.nanosec)
         batch = self.diag_batches.setdefault(key, (stamp, []))[1]
         batch.append(status)
-        quarters = {f'ego_motion/{k}' for k, n in self.hosted.items() if getattr(n, 'diag_sink', None)}
-        if quarters <= {s.name for s in batch}:
+        # complete when every hosted node that reports has: its status name is its key's
+        expected = {f'ego_motion/{k}' for k, n in self.hosted.items() if getattr(n, 'diag_sink', None)}
+        if expected <= {s.name for s in batch}:
             self.flush_diagnostics(key)
 
     def flush_diagnostics(self, key=None):

@@ -1,0 +1,38 @@
+"""Fewer entities in rclpy's wait set: every publisher and subscription brings QoS event
+handlers (they log incompatible-QoS warnings), each a waitable that the SingleThreadedExecutor
+adds to its wait set, in Python, before every wait. In a process that wakes up dozens of times
+a frame they cost more than the callbacks themselves."""
+from rclpy.node import Node
+
+
+def strip_entity(node, entity):
+    """Remove the QoS event handlers of one publisher or subscription of `node`."""
+    for h in entity.event_handlers:
+        node.remove_waitable(h)
+        h.destroy()
+    entity.event_handlers = []
+
+
+def strip_event_handlers(node, keep=lambda topic: topic.endswith('/image_raw')):
+    """Remove the QoS event handlers of the node's publishers and subscriptions, except on
+    `keep` topics (camera images: sensor-data QoS vs a driver's, where the warning helps).
+    A worker's 21 nodes: their handlers were most of an idle worker's CPU."""
+    for ent in list(node.publishers) + list(node.subscriptions):
+        if not keep(ent.topic_name):
+            strip_entity(node, ent)
+
+
+class LeanNode(Node):
+    """A node whose publishers and subscriptions come without QoS event handlers: for the
+    replay process (player, recorder, coordinator on one node), whose topics are all the
+    graph's own and matched on purpose."""
+
+    def create_publisher(self, *args, **kwargs):
+        pub = super().create_publisher(*args, **kwargs)
+        strip_entity(self, pub)
+        return pub
+
+    def create_subscription(self, *args, **kwargs):
+        sub = super().create_subscription(*args, **kwargs)
+        strip_entity(self, sub)
+        return sub
