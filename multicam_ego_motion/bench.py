@@ -125,6 +125,12 @@ def run(args) -> int:
     gr, frames_r, _ = _graph(args.bag, out / 'rate_m2', rig, rig_file, params, 2, False, args.duration)
     lat = [(gr.odom_received[s] - t) * 1e3 for s, t in gr.playback.published_at.items() if s in gr.odom_received]
     dropped = frames_r - len(lat)
+    # Per frame, for finding which frames make the p99 (start-up, a rebalance, a snapshot).
+    with open(out / 'rate_m2' / 'latency.csv', 'w') as f:
+        f.write('stamp_ns,latency_ms\n')
+        for s_ns, t in sorted(gr.playback.published_at.items()):
+            if s_ns in gr.odom_received:
+                f.write(f'{s_ns},{(gr.odom_received[s_ns] - t) * 1e3:.3f}\n')
     rtf = bag_s / gr.wall_s if gr.wall_s > 0 else float('nan')
 
     lines = [f'# ego-motion bench: {args.bag}, {n_frames} frames ({bag_s:.1f} s of bag), '
