@@ -66,7 +66,7 @@ class QuarterNode(Node):
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'pose', RELIABLE)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         self.create_subscription(Image, self.camera.image_topic, self.on_image, image_qos(p['image_qos']))
-        self.create_subscription(CameraInfo, self.camera.camera_info_topic, self.on_info, RELIABLE)
+        self.info_sub = self.create_subscription(CameraInfo, self.camera.camera_info_topic, self.on_info, RELIABLE)
         self.create_subscription(PoseWithCovarianceStamped, p['fused_pose_topic'], self.on_fused, RELIABLE)
         self.poll_timer = self.create_timer(POLL_PERIOD_S, self.poll)
         self.get_logger().info(f'{self.source}: waiting for {self.camera.image_topic}')
@@ -85,6 +85,15 @@ class QuarterNode(Node):
             return
         self.estimator = QuarterEstimator(self.camera, self.quarter, self.intrinsics, self.params,
                                           (msg.width, msg.height))
+        self.stop_camera_info()
+
+    def stop_camera_info(self):
+        # Only the first good CameraInfo is used, and drivers (and bags) repeat it with every
+        # image: 16 quarters taking and decoding it every frame were ~8 executor callbacks
+        # per worker and frame for nothing.
+        if self.info_sub is not None:
+            self.destroy_subscription(self.info_sub)
+            self.info_sub = None
 
     def on_image(self, msg: Image):
         # A frame delivered twice (the player re-publishes the current frame after a worker
@@ -179,6 +188,7 @@ class QuarterNode(Node):
         self.estimator = QuarterEstimator(self.camera, self.quarter, self.intrinsics, self.params,
                                           tuple(s['image_size']))
         self.estimator.set_state(s['estimator'])
+        self.stop_camera_info()
         self.last_processed_ns = s['last_processed_ns']
         self.last_fused_ns = s['last_fused_ns']
 
