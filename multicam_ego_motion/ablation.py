@@ -47,7 +47,7 @@ def run(args) -> int:
     from tqdm import tqdm
 
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
-    from multicam_ego_motion.bench import quarter_params_from
+    from multicam_ego_motion.bench import fusion_params_from, quarter_params_from
     from multicam_ego_motion.replay import DEFAULT_PARAMS, resolve_rig
     from multicam_ego_motion.sequential_pipeline import run_sequential
 
@@ -55,7 +55,9 @@ def run(args) -> int:
     if args.ground_truth_topic not in reader.topics:
         raise UserError(f'bag {args.bag} has no {args.ground_truth_topic}: nothing to score against')
     rig, _ = resolve_rig(reader, args.rig)
-    qp = quarter_params_from(Path(args.params) if args.params else DEFAULT_PARAMS)
+    params_file = Path(args.params) if args.params else DEFAULT_PARAMS
+    qp = quarter_params_from(params_file)
+    fp = fusion_params_from(params_file)
     present = [c for c in rig.cameras if c.image_topic in reader.topics]
     runs = [('fused (whole rig)', rig, (1, 2, 3, 4))]
     runs += [(c.name, replace(rig, cameras=[c]), (1, 2, 3, 4)) for c in present]
@@ -63,7 +65,7 @@ def run(args) -> int:
         runs += [(f'{c.name}/q{q}', replace(rig, cameras=[c]), (q,)) for c in present for q in range(1, 5)]
     results = {}
     for label, sub_rig, quarters in tqdm(runs, desc='ablation', unit='run'):
-        res = run_sequential(args.bag, sub_rig, qp, quarters=quarters)
+        res = run_sequential(args.bag, sub_rig, qp, fp, quarters=quarters)
         results[label] = score(args.bag, res.fused, args.ground_truth_topic)
     head = '| configuration | ' + ' | '.join(t for _, t, _ in COLUMNS) + ' |'
     lines = [f'Ablation on {args.bag} ({len(present)} cameras):', '', head,

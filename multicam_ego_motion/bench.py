@@ -28,16 +28,27 @@ def configure_parser(p):
     p.add_argument('--params', help='ROS params file (default: the package\'s config/params.yaml)')
 
 
-def quarter_params_from(params_file):
-    from camera_pose_nodes.quarter_estimator import QuarterParams
+def _node_params(params_file, node_name, names):
+    """The values a params file gives node `node_name` (any namespace), among `names`."""
     with open(params_file) as f:
         doc = yaml.safe_load(f) or {}
-    names = set(QuarterParams.__dataclass_fields__)
     out = {}
     for section, body in doc.items():
-        if section.endswith('quarter_node'):
+        if section.endswith(node_name):
             out.update({k: v for k, v in (body or {}).get('ros__parameters', {}).items() if k in names})
     return out
+
+
+def quarter_params_from(params_file):
+    from camera_pose_nodes.quarter_estimator import QuarterParams
+    return _node_params(params_file, 'quarter_node', set(QuarterParams.__dataclass_fields__))
+
+
+def fusion_params_from(params_file):
+    """The general arbiter's fusion parameters, so that the sequential baseline runs what the
+    graph runs."""
+    from arbiter_node.general_fusion import PARAMETERS
+    return _node_params(params_file, 'general_arbiter', set(PARAMETERS))
 
 
 def stage_medians(output_bag, cameras):
@@ -107,7 +118,8 @@ def run(args) -> int:
     cv2.setNumThreads(1)                 # one processor, as in the paper (and as each worker)
     t0, c0 = time.perf_counter(), time.process_time()
     try:
-        seq = run_sequential(args.bag, rig, quarter_params_from(params), max_frames=n_frames)
+        seq = run_sequential(args.bag, rig, quarter_params_from(params), fusion_params_from(params),
+                             max_frames=n_frames)
     finally:
         cv2.setNumThreads(threads)
     Ts = (time.perf_counter() - t0) / max(len(seq.fused), 1) * 1e3

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from arbiter_node.general_fusion import PARAMETERS, GeneralFusion
+from arbiter_node.general_fusion import PARAMETERS, GeneralFusion, default_params
 from arbiter_node.rig_scale import camera_direction, relative_motion
 from camera_pose_nodes.pose_estimate import PoseEstimate, uninformative
 from multicam_ego_motion import se3
@@ -140,3 +140,16 @@ def test_camera_floor_keeps_overconfident_but_agreeing_cameras():
                                 source='left', state='tracking')
     f = GeneralFusion(RIG).process(DT_NS, ests)
     assert 'left' in f.cameras_rejected and 'left' not in f.cameras_used
+
+
+def test_params_file_sets_every_fusion_parameter_with_its_type():
+    # config/params.yaml is what the graph loads; a missing entry would silently fall back to
+    # the code's default, a wrong type (0 for 0.0) would make the node refuse to start.
+    from pathlib import Path
+
+    from multicam_ego_motion.bench import fusion_params_from
+    params = fusion_params_from(Path(__file__).resolve().parents[1] / 'config' / 'params.yaml')
+    defaults = default_params()
+    assert set(params) == set(defaults)
+    for k, v in defaults.items():
+        assert type(params[k]) is type(v), (k, params[k], v)
