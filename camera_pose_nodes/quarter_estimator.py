@@ -353,10 +353,9 @@ class QuarterEstimator:
         xy = self.intrinsics.undistort_points(px.reshape(-1, 2)).reshape(-1, V, 2)
         # One camera pose per distinct stamp (tracks share most of theirs), then gathered.
         slot = {}
-        idx = [[slot.setdefault(o[0], len(slot)) for o in row] for row in views]
-        T = np.array([self.fused_poses[stamp] for stamp in slot]) @ self.T_base_cam
-        T = T[np.array(idx)]
-        return T[..., :3, :3], T[..., :3, 3], xy
+        idx = np.array([[slot.setdefault(o[0], len(slot)) for o in row] for row in views])
+        R_oc, c_o = self._camera_pose(np.array([self.fused_poses[stamp] for stamp in slot]))
+        return R_oc[idx], c_o[idx], xy
 
     def _forget_unused_poses(self):
         self.landmarks.keep_only(self.tracker.ids)
