@@ -170,6 +170,13 @@ class LandmarkMap:
             self.forget(i)
         return bad
 
+    def place(self, ids: np.ndarray, X: np.ndarray, C: np.ndarray):
+        """Move landmarks `ids` to X (M, 3) with covariances C (M, 3, 3), known better
+        than their triangulation (ground_plane); their parallax record stays."""
+        for i, X_i, C_i in zip(np.asarray(ids, np.int64).tolist(), X, C):
+            self.points[i] = np.array(X_i, float)
+            self.covariances[i] = np.array(C_i, float)
+
     def forget(self, track_id: int):
         self.points.pop(int(track_id), None)
         self.parallax.pop(int(track_id), None)

@@ -18,6 +18,7 @@ from typing import Dict, Optional
 import numpy as np
 
 from camera_pose_nodes.camera_model import CameraIntrinsics
+from camera_pose_nodes.ground_plane import snap_to_floor
 from camera_pose_nodes.klt_tracker import KLTConfig, KLTTracker, margin_for
 from camera_pose_nodes.landmark_map import LandmarkMap, bearings_odom, angle_deg
 from camera_pose_nodes.pose_ekf import PoseEKF
@@ -72,6 +73,9 @@ PARAMETERS = {
     'max_reproj_px': (2.0, 'landmarks reprojecting worse than this are rejected/dropped (px)', 0.1, 50.0),
     'min_depth': (0.1, 'nearest accepted landmark depth (m)', 0.001, 10.0),
     'max_depth': (200.0, 'farthest accepted landmark depth (m)', 1.0, 1e5),
+    'ground_plane': (True, 'put landmarks that lie on the floor onto it: their depth is then metric from the camera height (see ground_plane; needs the rig\'s floor_z)', None, None),
+    'ground_tolerance': (0.3, 'a floor landmark\'s depth is never farther than this fraction from its ray\'s floor intersection', 0.001, 1.0),
+    'ground_map_scale_std': (0.03, 'relative scale uncertainty of the fused poses, allowed for when judging a landmark on the floor', 0.0, 1.0),
 }
 
 
@@ -102,6 +106,9 @@ class QuarterParams:
     max_reproj_px: float = PARAMETERS['max_reproj_px'][0]
     min_depth: float = PARAMETERS['min_depth'][0]
     max_depth: float = PARAMETERS['max_depth'][0]
+    ground_plane: bool = PARAMETERS['ground_plane'][0]
+    ground_tolerance: float = PARAMETERS['ground_tolerance'][0]
+    ground_map_scale_std: float = PARAMETERS['ground_map_scale_std'][0]
 
     def validate(self) -> 'QuarterParams':
         for f in fields(self):
@@ -129,8 +136,11 @@ class QuarterParams:
 
 class QuarterEstimator:
     def __init__(self, camera: CameraMount, quarter: int, intrinsics: CameraIntrinsics,
-                 params: Optional[QuarterParams] = None, image_size=None):
+                 params: Optional[QuarterParams] = None, image_size=None,
+                 floor_z: Optional[float] = None):
+        """floor_z: the rig's floor in base_link (Rig.floor_z); None disables floor landmarks."""
         self.camera = camera
+        self.floor_z = floor_z
         self.quarter = int(quarter)
         self.intrinsics = intrinsics
         self.params = (params or QuarterParams()).validate()
@@ -343,7 +353,22 @@ class QuarterEstimator:
         if want:
             views = [[obs_of[k][j] for j in _view_indices(len(obs_of[k]))] for k in want]
             distinct = np.array([_distinct_views(len(obs_of[k])) for k in want])
-            lm.triangulate(np.array(cand)[want], *self._views(views), view_weights=distinct)
+            ids = np.array(cand)[want]
+            R_oc, c_o, xy = self._views(views)
+            ok = lm.triangulate(ids, R_oc, c_o, xy, view_weights=distinct)
+            if self.params.ground_plane and self.floor_z is not None and ok.any():
+                self._snap_to_floor(ids[ok], R_oc[ok, -1], c_o[ok, -1], xy[ok, -1],
+                                    [views[k][-1][0] for k in np.flatnonzero(ok).tolist()])
+
+    def _snap_to_floor(self, ids, R_oc, c_o, xy, stamps):
+        """Floor landmarks onto the floor, judged from each one's newest view."""
+        _, X = self.landmarks.lookup(ids)
+        T = np.array([self.fused_poses[s] for s in stamps])
+        p = self.params
+        on, X_f, C_f = snap_to_floor(X, self.landmarks.covariances_of(ids), R_oc, c_o, xy, T,
+                                     self.floor_z, p.ground_tolerance, p.ground_map_scale_std,
+                                     self.landmarks.sigma_n)
+        self.landmarks.place(ids[on], X_f, C_f)
 
     def _views(self, views):
         """(R_oc, c_o, xy) of observations (stamp, u, v) given as N rows of V views."""

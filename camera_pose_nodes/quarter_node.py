@@ -49,7 +49,9 @@ class QuarterNode(Node):
         self.params = QuarterParams(**declare_from_table(self, PARAMETERS))
         if not p['rig_file']:
             raise UserError(f'{self.get_fully_qualified_name()}: parameter rig_file is required')
-        self.camera = load_rig(p['rig_file']).camera(p['camera'])
+        rig = load_rig(p['rig_file'])
+        self.camera = rig.camera(p['camera'])
+        self.floor_z = rig.floor_z
         self.quarter = int(p['quarter'])
         self.source = f'{self.camera.name}/q{self.quarter}'
         self.feedback_timeout_s = p['feedback_timeout_s']
@@ -84,7 +86,7 @@ class QuarterNode(Node):
                 self.publish_diag(None, 'error', f'bad CameraInfo: {e}')
             return
         self.estimator = QuarterEstimator(self.camera, self.quarter, self.intrinsics, self.params,
-                                          (msg.width, msg.height))
+                                          (msg.width, msg.height), self.floor_z)
         self.stop_camera_info()
 
     def stop_camera_info(self):
@@ -186,7 +188,7 @@ class QuarterNode(Node):
     def set_state(self, s):
         self.intrinsics = s['intrinsics']
         self.estimator = QuarterEstimator(self.camera, self.quarter, self.intrinsics, self.params,
-                                          tuple(s['image_size']))
+                                          tuple(s['image_size']), self.floor_z)
         self.estimator.set_state(s['estimator'])
         self.stop_camera_info()
         self.last_processed_ns = s['last_processed_ns']

@@ -6,7 +6,7 @@ Intrinsics are not here: they come from each camera's CameraInfo.
 """
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List
+from typing import List, Optional
 
 import numpy as np
 import yaml
@@ -45,6 +45,10 @@ class CameraMount:
 class Rig:
     cameras: List[CameraMount] = field(default_factory=list)
     base_frame: str = 'base_link'
+    # The base stands on a level floor at this height in base_frame (0 for a base_link on
+    # the floor, REP-105's base_footprint); None: no such floor (a car rig whose base_link is
+    # at a tilted camera, a handheld rig). Floor landmarks and planar motion need it.
+    floor_z: Optional[float] = None
 
     def camera(self, name: str) -> CameraMount:
         for c in self.cameras:
@@ -57,7 +61,11 @@ class Rig:
         return [c.name for c in self.cameras]
 
     def to_dict(self):
-        return {'base_frame': self.base_frame, 'cameras': [c.to_dict() for c in self.cameras]}
+        d = {'base_frame': self.base_frame}
+        if self.floor_z is not None:
+            d['floor_z'] = float(self.floor_z)
+        d['cameras'] = [c.to_dict() for c in self.cameras]
+        return d
 
     def save(self, path):
         Path(path).parent.mkdir(parents=True, exist_ok=True)
@@ -65,6 +73,7 @@ class Rig:
             f.write('# Camera rig: extrinsics base_link -> <camera>_optical (REP-103/105).\n'
                     '# translation: camera centre in base_link (m); rotation_xyzw: the optical\n'
                     '# frame (z forward, x right, y down) expressed in base_link.\n'
+                    '# floor_z (optional): the level floor the base stands on, z in base_link.\n'
                     '# Intrinsics come from each camera\'s CameraInfo.\n')
             yaml.safe_dump(self.to_dict(), f, sort_keys=False)
 
@@ -116,7 +125,15 @@ def parse_rig(data: dict, source: str = 'rig') -> Rig:
         raise UserError(f'{source}: a rig has 1 to {MAX_CAMERAS} cameras, this one has {len(cams)}')
     if len(set(c.name for c in cams)) != len(cams):
         raise UserError(f'{source}: camera names must be unique')
-    return Rig(cameras=cams, base_frame=data.get('base_frame', 'base_link'))
+    floor_z = data.get('floor_z')
+    if floor_z is not None:
+        try:
+            floor_z = float(floor_z)
+        except (TypeError, ValueError):
+            floor_z = float('nan')
+        if not np.isfinite(floor_z):
+            raise UserError(f'{source}: floor_z must be a finite number (m), got {data["floor_z"]!r}')
+    return Rig(cameras=cams, base_frame=data.get('base_frame', 'base_link'), floor_z=floor_z)
 
 
 def load_rig(path) -> Rig:
@@ -144,7 +161,8 @@ def optical_rotation(yaw: float, pitch: float = 0.0) -> np.ndarray:
 
 
 def paper_rig(radius: float = 0.25, height: float = 0.5) -> Rig:
-    """The paper's Fig. 1: two back-to-back pairs (front/back, left/right), axes perpendicular."""
+    """The paper's Fig. 1: two back-to-back pairs (front/back, left/right), axes perpendicular,
+    `height` above the floor base_link stands on."""
     cams = []
     for name, yaw in (('front', 0.0), ('left', np.pi / 2), ('back', np.pi), ('right', -np.pi / 2)):
         cams.append(CameraMount(
@@ -152,4 +170,4 @@ def paper_rig(radius: float = 0.25, height: float = 0.5) -> Rig:
             frame_id=f'{name}_optical',
             translation=np.array([radius * np.cos(yaw), radius * np.sin(yaw), height]),
             rotation=optical_rotation(yaw)))
-    return Rig(cameras=cams)
+    return Rig(cameras=cams, floor_z=0.0)

@@ -103,7 +103,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             cam = info_topic[topic]
             if cam.name not in estimators:
                 intr = intrinsics_from_msg(msg, cam.name)
-                estimators[cam.name] = [QuarterEstimator(cam, q, intr, qp, (msg.width, msg.height))
+                estimators[cam.name] = [QuarterEstimator(cam, q, intr, qp, (msg.width, msg.height), rig.floor_z)
                                         for q in quarters]
             continue
         cam = by_topic[topic]

@@ -18,19 +18,21 @@ from multicam_ego_motion.evaluation.trajectory_io import load_trajectory
 SEED, DURATION_S, RATE_HZ, WIDTH, HEIGHT, FX = 7, 20, 8, 320, 240, 200
 FRAMES = DURATION_S * RATE_HZ + 1
 
-# scenario -> metric -> upper bound. The targets where they are met; where not yet,
-# the bound is the figure this graph reliably reaches (lockstep replay is deterministic to
-# about 0.01 %) plus ~10 %, marked NOT MET with the target. Tighten these as accuracy improves.
+# scenario -> metric -> upper bound: the target, or tighter where the graph is well
+# inside it (the measured figure plus a margin for platform differences in floating point:
+# lockstep replay repeats itself to ~0.01 % on one machine). Seed-8 runs of the same
+# scenarios (not tested) measured loop 0.57 % drift and +0.85 % scale, corridor 0.28 %,
+# spin 0.56 %, lighting 0.55 %.
 THRESHOLDS = {
     'loop': {
-        'ate_pct': 1.0,                       # target (measured 0.53)
-        'final_drift_pct': 1.0,               # target (measured 0.43)
-        'rotation_drift_deg_per_m': 0.1,      # target (measured 0.074)
-        'abs_scale_error_pct': 1.65,          # NOT MET: target 1.0 (measured 1.49; the wheel's own is 3.8)
+        'ate_pct': 0.6,                       # target 1.0 (measured 0.27)
+        'final_drift_pct': 0.7,               # target 1.0 (measured 0.31)
+        'rotation_drift_deg_per_m': 0.1,      # target (measured 0.052)
+        'abs_scale_error_pct': 0.6,           # target 1.0 (measured 0.02)
     },
-    'corridor': {'final_drift_pct': 2.0},     # target (measured 0.95)
-    'spin_then_drive': {'final_drift_pct': 2.0},   # target (measured 1.65)
-    'lighting': {'final_drift_pct': 2.0,      # target (measured 0.26)
+    'corridor': {'final_drift_pct': 1.5},     # target 2.0 (measured 0.73)
+    'spin_then_drive': {'final_drift_pct': 1.5},   # target 2.0 (measured 0.72)
+    'lighting': {'final_drift_pct': 1.0,      # target 2.0 (measured 0.22)
                  'ate_sim3_rmse_m': 0.25},    # no divergence: the shape holds
 }
 

@@ -171,6 +171,21 @@ def test_rig_layouts():
         evenly_spaced_rig(9)
 
 
+def test_rig_floor_is_saved_loaded_and_checked(tmp_path):
+    """Generated rigs stand on the renderer's floor (floor_z 0 in base_link); a rig file
+    without floor_z has no floor (floor landmarks and planar motion off); a NaN is rejected."""
+    from multicam_ego_motion.rig import load_rig, parse_rig
+    rig = evenly_spaced_rig(3)
+    assert rig.floor_z == 0.0
+    rig.save(tmp_path / 'rig.yaml')
+    assert load_rig(tmp_path / 'rig.yaml').floor_z == 0.0
+    d = rig.to_dict()
+    d.pop('floor_z')
+    assert parse_rig(d).floor_z is None
+    with pytest.raises(UserError, match='floor_z must be a finite number'):
+        parse_rig(dict(d, floor_z=float('nan')), 'x.yaml')
+
+
 def run_cli(*args):
     return subprocess.run([sys.executable, '-m', 'multicam_ego_motion.cli', *args],
                           capture_output=True, text=True, cwd=REPO, timeout=120)

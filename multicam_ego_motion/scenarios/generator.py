@@ -57,7 +57,7 @@ def evenly_spaced_rig(n: int, radius: float = 0.25) -> Rig:
                                 f'{name}_optical',
                                 np.array([radius * np.cos(yaw), radius * np.sin(yaw), CAMERA_HEIGHT]),
                                 optical_rotation(yaw)))
-    return Rig(cameras=cams)
+    return Rig(cameras=cams, floor_z=0.0)     # the renderer's floor is base_link's z = 0
 
 
 def check_output_free(path: Path):
