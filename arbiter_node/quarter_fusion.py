@@ -117,6 +117,7 @@ def fuse_quarters_report(estimates: List[PoseEstimate], source: str,
     stamp = max(e.stamp_ns for e in estimates)
     kw = dict(n_features=sum(e.n_features for e in estimates),
               n_landmarks=sum(e.n_landmarks for e in estimates),
+              n_floor=sum(e.n_floor for e in estimates),
               stage_ms=aggregate_stage_ms(estimates))
     report = FusionReport(estimate=None)
     good = []

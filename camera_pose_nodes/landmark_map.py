@@ -88,16 +88,19 @@ class LandmarkMap:
         self.points: Dict[int, np.ndarray] = {}
         self.parallax: Dict[int, float] = {}
         self.covariances: Dict[int, np.ndarray] = {}
+        self.on_floor = set()     # ids placed on the floor (ground_plane)
 
     def get_state(self) -> dict:
         return {'points': {k: v.copy() for k, v in self.points.items()},
                 'parallax': dict(self.parallax),
-                'covariances': {k: v.copy() for k, v in self.covariances.items()}}
+                'covariances': {k: v.copy() for k, v in self.covariances.items()},
+                'on_floor': sorted(self.on_floor)}
 
     def set_state(self, s: dict):
         self.points = {int(k): np.array(v, float) for k, v in s['points'].items()}
         self.parallax = {int(k): float(v) for k, v in s['parallax'].items()}
         self.covariances = {int(k): np.array(v, float) for k, v in s['covariances'].items()}
+        self.on_floor = set(int(i) for i in s['on_floor'])
 
     def __len__(self):
         return len(self.points)
@@ -145,6 +148,7 @@ class LandmarkMap:
         w = np.ones(xy.shape[:2]) if view_weights is None else np.asarray(view_weights, float)
         C = triangulation_covariance(Xc[ok], R_oc[ok], w[ok], self.sigma_n)
         for i, X_i, p, C_i in zip(ids[ok].tolist(), X[ok], par[ok].tolist(), C):
+            self.on_floor.discard(i)
             self.points[i] = X_i
             self.parallax[i] = p
             self.covariances[i] = C_i
@@ -171,16 +175,18 @@ class LandmarkMap:
         return bad
 
     def place(self, ids: np.ndarray, X: np.ndarray, C: np.ndarray):
-        """Move landmarks `ids` to X (M, 3) with covariances C (M, 3, 3), known better
-        than their triangulation (ground_plane); their parallax record stays."""
+        """Move landmarks `ids` onto the floor: X (M, 3) with covariances C (M, 3, 3), known
+        better than their triangulation (ground_plane); their parallax record stays."""
         for i, X_i, C_i in zip(np.asarray(ids, np.int64).tolist(), X, C):
             self.points[i] = np.array(X_i, float)
             self.covariances[i] = np.array(C_i, float)
+            self.on_floor.add(i)
 
     def forget(self, track_id: int):
         self.points.pop(int(track_id), None)
         self.parallax.pop(int(track_id), None)
         self.covariances.pop(int(track_id), None)
+        self.on_floor.discard(int(track_id))
 
     def keep_only(self, live_ids):
         """Landmarks of tracks that no longer exist are of no use to a tracking-only map."""

@@ -25,6 +25,7 @@ class PoseEstimate:
     state: str = 'initializing'                  # one of STATES
     n_features: int = 0                          # tracked features
     n_landmarks: int = 0                         # tracked features with a 3D landmark
+    n_floor: int = 0                             # of those, landmarks on the floor (metric scale)
     n_inliers: int = 0                           # measurements accepted by gating
     stage_ms: Dict[str, float] = field(default_factory=dict)  # acquire/extract/track/pose/structure
 

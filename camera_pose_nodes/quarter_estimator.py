@@ -27,7 +27,7 @@ from camera_pose_nodes.quarter_region import QuarterRegion
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.rig import CameraMount
 
-STATE_VERSION = 2     # 2: landmarks carry covariances
+STATE_VERSION = 3     # 2: landmarks carry covariances; 3: and which are on the floor
 STAGES = ('acquire', 'extract', 'track', 'pose', 'structure')
 _ROTATION_ONLY_POSITION_VARIANCE = 1.0e2   # m^2: 'position not measured', still < UNINFORMATIVE
 _TRIANGULATION_VIEWS = 5     # views per DLT: oldest, newest and evenly spaced between
@@ -238,7 +238,9 @@ class QuarterEstimator:
             state = 'initializing'
         else:
             state = 'lost'
+        on_floor = self.landmarks.on_floor
         kw = dict(n_features=len(self.tracker.ids), n_landmarks=int(has.sum()),
+                  n_floor=sum(1 for i in self.tracker.ids[has].tolist() if i in on_floor),
                   n_inliers=n_inliers + n_epipolar, stage_ms=ms)
         if state != 'tracking':
             return uninformative(stamp_ns, self.ekf.T_odom_base, self.source, state, **kw)

@@ -198,7 +198,7 @@ class QuarterNode(Node):
         values = {}
         if est is not None:
             values = {'state': est.state, 'features': est.n_features, 'landmarks': est.n_landmarks,
-                      'inliers': est.n_inliers}
+                      'floor_landmarks': est.n_floor, 'inliers': est.n_inliers}
             values.update({f'{k}_ms': float(v) for k, v in est.stage_ms.items()})
         if stamp is None:
             stamp = self.get_clock().now().to_msg()

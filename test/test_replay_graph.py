@@ -59,6 +59,26 @@ def test_quarter_and_camera_estimates_and_diagnostics_recorded(replayed):
     assert any(v['state'] == 'tracking' for v in q_values)
 
 
+def test_bottom_quarters_report_floor_landmarks(replayed):
+    """The default rig stands on a floor (rig floor_z): the bottom quarters (3, 4), which
+    see it, put landmarks on it (ground_plane) and say how many they track; the top quarters
+    look above the horizon and never do."""
+    out, _ = replayed
+    diag = read_topic(out / 'output', '/diagnostics')
+    most = {}
+    for m in diag:
+        for st in m.status:
+            v = {kv.key: kv.value for kv in st.values}
+            if st.name.startswith('ego_motion/') and '/q' in st.name and 'floor_landmarks' in v:
+                most[st.name] = max(most.get(st.name, 0), int(v['floor_landmarks']))
+    assert len(most) == 16, sorted(most)
+    for name, n in most.items():
+        if name.endswith(('q3', 'q4')):
+            assert n >= 5, (name, n)
+        else:
+            assert n == 0, (name, n)
+
+
 def test_summary_and_report(replayed):
     out, stdout = replayed
     assert len([l for l in (out / 'odometry.tum').read_text().splitlines() if not l.startswith('#')]) == FRAMES
