@@ -43,7 +43,9 @@ NODE_PARAMETERS = {
 
 
 class QuarterNode(Node):
-    def __init__(self, **node_kwargs):
+    def __init__(self, shared_inputs: bool = False, **node_kwargs):
+        """shared_inputs: do not subscribe the image and the fused pose; a host (worker.py)
+        that runs several quarters takes each once and calls on_image / on_fused of all."""
         super().__init__('quarter_node', **node_kwargs)
         p = declare_from_table(self, NODE_PARAMETERS)
         self.params = QuarterParams(**declare_from_table(self, PARAMETERS))
@@ -67,9 +69,13 @@ class QuarterNode(Node):
         self.diag_sink = None
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'pose', RELIABLE)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
-        self.create_subscription(Image, self.camera.image_topic, self.on_image, image_qos(p['image_qos']))
+        # topic -> (type, QoS, callback) of the per-frame inputs
+        self.inputs = {self.camera.image_topic: (Image, image_qos(p['image_qos']), self.on_image),
+                       p['fused_pose_topic']: (PoseWithCovarianceStamped, RELIABLE, self.on_fused)}
+        if not shared_inputs:
+            for topic, (msg_type, qos, callback) in self.inputs.items():
+                self.create_subscription(msg_type, topic, callback, qos)
         self.info_sub = self.create_subscription(CameraInfo, self.camera.camera_info_topic, self.on_info, RELIABLE)
-        self.create_subscription(PoseWithCovarianceStamped, p['fused_pose_topic'], self.on_fused, RELIABLE)
         self.poll_timer = self.create_timer(POLL_PERIOD_S, self.poll)
         self.get_logger().info(f'{self.source}: waiting for {self.camera.image_topic}')
 

@@ -88,12 +88,14 @@ def recorded_topics(rig):
 
 
 def wait_for_graph(node, rig, bag_reader, coordinator, timeout_s=60.0):
-    """Every quarter node subscribed to its present camera, and the general arbiter up."""
+    """Every worker hosting quarters of a present camera subscribed to its images, and the
+    general arbiter up."""
     deadline = time.monotonic() + timeout_s
     present = [c for c in rig.cameras if c.image_topic in bag_reader.topics]
     while time.monotonic() < deadline:
         coordinator.check_alive()
-        ok = all(node.count_subscribers(c.image_topic) >= 4 for c in present)
+        ok = all(node.count_subscribers(c.image_topic) >= coordinator.image_readers(c.name)
+                 for c in present)
         ok = ok and node.count_publishers('/odom') >= 1
         if ok:
             return
@@ -143,20 +145,16 @@ class GraphRun:
 
 
 def make_link_waiter(rig, player, timeout_s=2.0):
-    """For a moved quarter: wait until the player saw its image subscriber go, then come
-    back (a frame published in between would be lost for it)."""
-    baseline = {}
-
-    def wait(spec, phase):
-        if spec['kind'] != 'quarter':
+    """For a moved quarter: wait until the player sees the image subscriptions the graph
+    has once it is detached, then once attached (`readers`, from the coordinator: one per
+    worker hosting that camera's quarters); a frame published before its new worker's
+    subscription matched would be lost for it."""
+    def wait(spec, phase, readers=None):
+        if spec['kind'] != 'quarter' or phase == 'before':
             return
         topic = rig.camera(spec['parameters']['camera']).image_topic
-        if phase == 'before':
-            baseline[topic] = player.subscription_count(topic)
-            return
-        expected = baseline[topic]
-        ok = ((lambda: player.subscription_count(topic) < expected) if phase == 'detached'
-              else (lambda: player.subscription_count(topic) >= expected))
+        ok = ((lambda: player.subscription_count(topic) <= readers) if phase == 'detached'
+              else (lambda: player.subscription_count(topic) >= readers))
         deadline = time.monotonic() + timeout_s
         while not ok() and time.monotonic() < deadline:
             time.sleep(0.002)

@@ -184,6 +184,13 @@ class Coordinator:
     def nodes_of(self, worker: int) -> List[str]:
         return [k for k, w in self.placement.items() if w == worker]
 
+    def image_readers(self, camera: str, placement=None) -> int:
+        """How many subscriptions a camera's image topic has from the graph: one per worker
+        hosting any of its quarters (a worker takes each input once for all, worker.py)."""
+        placement = self.placement if placement is None else placement
+        return len({w for k, w in placement.items() if self.specs[k].kind == 'quarter'
+                    and self.specs[k].parameters.get('camera') == camera})
+
     # ---- processes and channel -----------------------------------------------------------
     def _spawn(self, h: WorkerHandle):
         h.ready.clear()
@@ -338,26 +345,32 @@ class Coordinator:
     # ---- migration and rebalancing ---------------------------------------------------------
     def migrate(self, key: str, dst: int):
         """Move a node to worker `dst` with its state; no frame is skipped when called
-        between frames (lockstep). `link_waiter(spec, phase)` (phase 'before', 'detached',
-        'attached'), when set, waits until the frame source sees the change."""
+        between frames (lockstep). `link_waiter(spec, phase, readers)` (phase 'before',
+        'detached', 'attached'; readers: the image subscriptions of the node's camera after
+        that phase), when set, waits until the frame source sees the change."""
         with self._ops:
             src = self.placement[key]
             if src == dst:
                 return
             spec = self.specs[key].to_dict()
+            camera = spec['parameters'].get('camera')
+            without = {k: w for k, w in self.placement.items() if k != key}
+            # image readers once detached from src, then once attached to dst
+            readers = (self.image_readers(camera, without),
+                       self.image_readers(camera, dict(without, **{key: dst})))
             if self.link_waiter:
                 self.link_waiter(spec, 'before')
             t = [time.monotonic()]
             reply = self._request(self.workers[src], control.DETACH, key)
             t.append(time.monotonic())
             if self.link_waiter:
-                self.link_waiter(spec, 'detached')
+                self.link_waiter(spec, 'detached', readers[0])
             t.append(time.monotonic())
             self.snapshots[key] = reply['state']
             self._attach(self.workers[dst], key, reply['state'], wait_links=True)
             t.append(time.monotonic())
             if self.link_waiter:
-                self.link_waiter(spec, 'attached')
+                self.link_waiter(spec, 'attached', readers[1])
             t.append(time.monotonic())
             self.placement[key] = dst
             self._placement_version += 1

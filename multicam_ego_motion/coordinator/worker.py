@@ -56,7 +56,7 @@ def node_class(kind: str):
     raise UserError(f'unknown node kind {kind!r}')
 
 
-def create_node(spec: dict, params_file: str = None):
+def create_node(spec: dict, params_file: str = None, **kwargs):
     """The node of a spec, lean: rclpy's SingleThreadedExecutor rebuilds its wait set over
     every entity of every node of the worker before each callback, and each rclpy node
     brings seven services of its own (six parameter services and get_type_description):
@@ -66,13 +66,14 @@ def create_node(spec: dict, params_file: str = None):
     overrides = [Parameter(k, value=v) for k, v in spec['parameters'].items()]
     overrides.append(Parameter('start_type_description_service', value=False))
     return node_class(spec['kind'])(namespace=spec['namespace'], parameter_overrides=overrides,
-                                    cli_args=cli_args, start_parameter_services=False)
+                                    cli_args=cli_args, start_parameter_services=False, **kwargs)
 
 
-def linked(node) -> bool:
-    """Every input has a publisher and every estimate output a subscriber: a moved node must
-    not miss the next frame because discovery was still under way."""
-    subs_ok = all(s.get_publisher_count() > 0 for s in node.subscriptions
+def linked(node, shared=()) -> bool:
+    """Every input (its own subscriptions and the `shared` ones that feed it) has a publisher
+    and every estimate output a subscriber: a moved node must not miss the next frame because
+    discovery was still under way."""
+    subs_ok = all(s.get_publisher_count() > 0 for s in list(node.subscriptions) + list(shared)
                   if not s.topic_name.endswith('/wheel/odom'))   # wheel odometry is optional
     pubs_ok = all(p.get_subscription_count() > 0 for p in node.publishers
                   if p.topic_name.endswith('/pose') or p.topic_name == '/ego_motion/fused_pose')
@@ -112,6 +113,32 @@ class Worker:
         self.diag_pub = self.node.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         self.diag_batches = {}          # (sec, nanosec) -> (stamp, [DiagnosticStatus])
         strip_event_handlers(self.node)
+        # Shared inputs: one subscription per topic for all hosted quarters (a camera's image,
+        # the fused pose) calling each one's callback. Per quarter, they were 2 takes and 2
+        # executor callbacks per frame, and 2 more readers for every publisher to write to.
+        self.feeds = {}                 # topic -> (subscription, {key: callback})
+
+    def feed(self, key, node):
+        for topic, (msg_type, qos, callback) in node.inputs.items():
+            if topic not in self.feeds:
+                def dispatch(msg, topic=topic):
+                    for cb in list(self.feeds[topic][1].values()):
+                        cb(msg)
+                sub = self.node.create_subscription(msg_type, topic, dispatch, qos)
+                strip_event_handlers(self.node)
+                self.feeds[topic] = (sub, {})
+            self.feeds[topic][1][key] = callback
+
+    def unfeed(self, key):
+        for topic in list(self.feeds):
+            sub, callbacks = self.feeds[topic]
+            callbacks.pop(key, None)
+            if not callbacks:
+                self.node.destroy_subscription(sub)
+                del self.feeds[topic]
+
+    def shared_subscriptions(self, node):
+        return [self.feeds[t][0] for t in getattr(node, 'inputs', {}) if t in self.feeds]
 
     def poll_nodes(self):
         for node in list(self.hosted.values()):
@@ -189,7 +216,8 @@ class Worker:
     def attach(self, req, spec, state_bytes, wait_links=False):
         key = spec['key']
         try:
-            node = create_node(spec, self.params_file)
+            node = create_node(spec, self.params_file,
+                               **({'shared_inputs': True} if spec['kind'] == 'quarter' else {}))
             if state_bytes is not None and hasattr(node, 'set_state'):
                 state = pickle.loads(state_bytes)
                 if state is not None:
@@ -204,6 +232,8 @@ class Worker:
             node.diag_sink = self.collect_diagnostic
         strip_event_handlers(node)
         self.hosted[key] = node
+        if getattr(node, 'inputs', None):
+            self.feed(key, node)
         self.executor.add_node(node)
         # Which process hosts what: read by people after a crash, and by the fault tests.
         print(f'worker {self.index} (pid {os.getpid()}) hosts {", ".join(self.hosted)}', flush=True)
@@ -215,7 +245,7 @@ class Worker:
         def done(in_time):
             time.sleep(0.05)        # the other side of each match (writer vs reader) catches up
             self.send((control.REPLY, req, {'ok': True, 'linked': in_time}))
-        self.defer(lambda: linked(node), done, LINK_TIMEOUT_S)
+        self.defer(lambda: linked(node, self.shared_subscriptions(node)), done, LINK_TIMEOUT_S)
 
     def detach(self, req, key):
         node = self.hosted.get(key)
@@ -226,6 +256,7 @@ class Worker:
         def done(idle):
             self.flush_diagnostics()
             state = node.get_state() if hasattr(node, 'get_state') else None
+            self.unfeed(key)
             self.executor.remove_node(node)
             node.destroy_node()
             del self.hosted[key]
