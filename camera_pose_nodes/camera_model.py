@@ -17,6 +17,19 @@ _MODELS = {'plumb_bob': (4, 5), 'rational_polynomial': (8, 14), 'equidistant': (
            'none': (0, 0), '': (0, 0)}
 
 
+def projection_jacobian(Xc: np.ndarray):
+    """Normalized projection (x/z, y/z) of camera-frame points Xc (..., 3): returns
+    (xy (..., 2), z with |z| >= 1e-9 (...), Jacobian d(xy)/d(Xc) (..., 2, 3)). The filter's
+    measurement model and the landmarks' covariance both differentiate it."""
+    z = Xc[..., 2]
+    zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
+    xy = Xc[..., :2] / zs[..., None]
+    J = np.zeros(Xc.shape[:-1] + (2, 3))
+    J[..., 0, 0] = J[..., 1, 1] = 1.0 / zs
+    J[..., :, 2] = -xy / zs[..., None]
+    return xy, zs, J
+
+
 @dataclass
 class CameraIntrinsics:
     K: np.ndarray                 # 3x3

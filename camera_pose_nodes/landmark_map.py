@@ -18,6 +18,8 @@ from typing import Dict
 
 import numpy as np
 
+from camera_pose_nodes.camera_model import projection_jacobian
+
 
 def triangulate_views(R_oc: np.ndarray, c_o: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Linear multi-view DLT, vectorised over points.
@@ -47,10 +49,7 @@ def triangulation_covariance(Xc: np.ndarray, R_oc: np.ndarray, view_weights: np.
     short baseline is known along its ray far worse than across it.
     view_weights (N, V): 1 per distinct view, 0 for a repeated one (short tracks repeat
     views in the DLT's fixed-size list)."""
-    z = np.where(np.abs(Xc[..., 2]) > 1e-9, Xc[..., 2], 1e-9)
-    Jpi = np.zeros(z.shape + (2, 3))
-    Jpi[..., 0, 0] = Jpi[..., 1, 1] = 1.0 / z
-    Jpi[..., :, 2] = -Xc[..., :2] / (z * z)[..., None]
+    _, _, Jpi = projection_jacobian(Xc)
     J = np.einsum('nvij,nvkj->nvik', Jpi, R_oc)                       # d(xy)/dX = Jpi R_oc^T
     info = np.einsum('nv,nvji,nvjk->nik', view_weights, J, J) / (sigma_n * sigma_n)
     # a tiny ridge keeps a degenerate (rotation-only) point invertible; checks drop it anyway

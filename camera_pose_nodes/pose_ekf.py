@@ -13,6 +13,7 @@ number of measurements changes every frame, so H and R are built per update.
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
+from camera_pose_nodes.camera_model import projection_jacobian
 from multicam_ego_motion.se3 import make_T, R_to_rotvec, rotvec_to_R
 
 DIM = 12
@@ -127,12 +128,8 @@ class PoseEKF:
         d = X - p                                       # landmark relative to body, odom
         Xc = d @ A.T - R_bc.T @ t_bc
         z = Xc[:, 2]
-        zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
-        uv = Xc[:, :2] / zs[:, None]
+        uv, _, Jpi = projection_jacobian(Xc)
         n = len(X)
-        Jpi = np.zeros((n, 2, 3))
-        Jpi[:, 0, 0] = Jpi[:, 1, 1] = 1.0 / zs
-        Jpi[:, :, 2] = -uv / zs[:, None]
         # Xc = A (I - [dtheta]x)(X - p) - ...: dXc/dp = -A, dXc/ddtheta = A [X - p]x
         dth = np.einsum('ij,njk->nik', A, _skew_batch(d))
         H = np.zeros((n, 2, DIM))
