@@ -56,6 +56,7 @@ from multicam_ego_motion.errors import UserError
 
 DEFAULT_LOCKSTEP_PATTERN = '*/image_raw'
 NS_PER_S = 1_000_000_000
+MATCH_SETTLE_S = 0.2
 REPUBLISH_PERIOD_S = 0.5
 
 
@@ -341,6 +342,9 @@ class BagPlayer:
         self._wait(lambda: False, opts.discovery_s - (time.monotonic() - self._t_created))
         if not self._wait(all_matched, opts.discovery_timeout_s):
             node.get_logger().warning('not every subscriber matched before playback started')
+        # Our writer matching a reader does not mean that reader has matched us yet; a sample
+        # sent before it has is dropped by it (rate mode lost its first message that way).
+        self._wait(lambda: False, MATCH_SETTLE_S)
 
     def _await_ack(self, frame: Frame, acks_before: int, publishers=None) -> int:
         """Wait for the acknowledgement; returns how often the frame was published again."""
