@@ -144,6 +144,7 @@ class QuarterEstimator:
         self.quarter = int(quarter)
         self.intrinsics = intrinsics
         self.params = (params or QuarterParams()).validate()
+        self.uses_floor = self.params.ground_plane and floor_z is not None
         w, h = image_size if image_size is not None else (intrinsics.width, intrinsics.height)
         self.image_size = (int(w), int(h))
         p = self.params
@@ -315,7 +316,7 @@ class QuarterEstimator:
         self.fused_poses[stamp_ns] = T.copy()
         self._prune_landmarks(stamp_ns, T)
         self._triangulate()
-        if first and self.params.ground_plane and self.floor_z is not None:
+        if first and self.uses_floor:
             self._seed_floor(stamp_ns, T)
         self._forget_unused_poses()
         self.structure_ms = (time.thread_time() - t0) * 1e3
@@ -361,7 +362,7 @@ class QuarterEstimator:
             ids = np.array(cand)[want]
             R_oc, c_o, xy = self._views(views)
             ok = lm.triangulate(ids, R_oc, c_o, xy, view_weights=distinct)
-            if self.params.ground_plane and self.floor_z is not None and ok.any():
+            if self.uses_floor and ok.any():
                 self._snap_to_floor(ids[ok], R_oc[ok, -1], c_o[ok, -1], xy[ok, -1],
                                     [views[k][-1][0] for k in np.flatnonzero(ok).tolist()])
 

@@ -149,8 +149,8 @@ def make_link_waiter(rig, player, timeout_s=2.0):
     has once it is detached, then once attached (`readers`, from the coordinator: one per
     worker hosting that camera's quarters); a frame published before its new worker's
     subscription matched would be lost for it."""
-    def wait(spec, phase, readers=None):
-        if spec['kind'] != 'quarter' or phase == 'before':
+    def wait(spec, phase, readers):
+        if spec['kind'] != 'quarter':
             return
         topic = rig.camera(spec['parameters']['camera']).image_topic
         ok = ((lambda: player.subscription_count(topic) <= readers) if phase == 'detached'

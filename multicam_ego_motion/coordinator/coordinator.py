@@ -345,9 +345,9 @@ class Coordinator:
     # ---- migration and rebalancing ---------------------------------------------------------
     def migrate(self, key: str, dst: int):
         """Move a node to worker `dst` with its state; no frame is skipped when called
-        between frames (lockstep). `link_waiter(spec, phase, readers)` (phase 'before',
-        'detached', 'attached'; readers: the image subscriptions of the node's camera after
-        that phase), when set, waits until the frame source sees the change."""
+        between frames (lockstep). `link_waiter(spec, phase, readers)` (phase 'detached',
+        'attached'; readers: the image subscriptions of the node's camera after that phase),
+        when set, waits until the frame source sees the change."""
         with self._ops:
             src = self.placement[key]
             if src == dst:
@@ -358,8 +358,6 @@ class Coordinator:
             # image readers once detached from src, then once attached to dst
             readers = (self.image_readers(camera, without),
                        self.image_readers(camera, dict(without, **{key: dst})))
-            if self.link_waiter:
-                self.link_waiter(spec, 'before')
             t = [time.monotonic()]
             reply = self._request(self.workers[src], control.DETACH, key)
             t.append(time.monotonic())
