@@ -10,7 +10,7 @@ give identical results.
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Dict, List, Tuple
+from typing import Dict, List, NamedTuple, Optional, Tuple
 
 import numpy as np
 import cv2
@@ -32,6 +32,13 @@ class KLTConfig:
     grid_cols: int = 2
     max_history: int = 60         # observations kept per track (the oldest is always kept)
     parallel_chunks: bool = False # run chunks/cells on a thread pool
+
+
+class Flow(NamedTuple):
+    """Where the tracks `ids` went in a new crop: positions (full-image px) and kept flags."""
+    ids: np.ndarray
+    new: np.ndarray
+    ok: np.ndarray
 
 
 def margin_for(cfg: KLTConfig) -> int:
@@ -87,43 +94,60 @@ class KLTTracker:
         return max(1, math.ceil(n_points / max(1, self.cfg.min_features)))
 
     # ----- track -------------------------------------------------------------------------
-    def track(self, stamp_ns: int, crop: np.ndarray) -> int:
-        """Track existing features from the previous crop into `crop`; returns tracks kept."""
+    def flow(self, crop: np.ndarray) -> Optional[Flow]:
+        """Lucas-Kanade flow of the current tracks from the previous crop into `crop`, without
+        changing the tracker: a quarter computes it while it still waits for the previous
+        frame's fused pose (pipelining), and track() applies it to the tracks that are left."""
+        if self.prev_crop is None or not len(self.ids):
+            return None
         # OpenCV 5's Python binding no longer accepts prebuilt pyramids here, so each call
         # builds its own; the pyramid is a pure function of the image, hence chunking and
         # state hand-over still give identical results.
-        if self.prev_crop is not None and len(self.ids):
-            off = self.region.offset
-            p0 = (self.pts - off).reshape(-1, 1, 2).astype(np.float32)
-            w = self.cfg.window
-            crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
-            prev, lv = self.prev_crop, self.cfg.pyramid_levels
+        off = self.region.offset
+        p0 = (self.pts - off).reshape(-1, 1, 2).astype(np.float32)
+        w = self.cfg.window
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+        prev, lv = self.prev_crop, self.cfg.pyramid_levels
 
-            def lk(chunk):
-                a = p0[chunk]
-                b, st1, _ = cv2.calcOpticalFlowPyrLK(prev, crop, a, None, winSize=(w, w),
-                                                     maxLevel=lv, criteria=crit)
-                new = b.reshape(-1, 2) + off
-                # Only tracks that can still be kept are checked backwards (a quarter of them
-                # were lost or left the quarter; each point is tracked on its own, so leaving
-                # the others out changes nothing).
-                ok = (st1.ravel() == 1) & np.all(np.isfinite(new), axis=1)
-                ok &= self.region.owns(new)       # left the quarter: the neighbour takes over
-                if ok.any():
-                    back, st2, _ = cv2.calcOpticalFlowPyrLK(crop, prev, b[ok], None,
-                                                            winSize=(w, w), maxLevel=lv,
-                                                            criteria=crit)
-                    fb = np.linalg.norm((back - a[ok]).reshape(-1, 2), axis=1)
-                    ok[ok] = (st2.ravel() == 1) & (fb < self.cfg.fb_threshold_px)
-                return new, ok
+        def lk(chunk):
+            a = p0[chunk]
+            b, st1, _ = cv2.calcOpticalFlowPyrLK(prev, crop, a, None, winSize=(w, w),
+                                                 maxLevel=lv, criteria=crit)
+            new = b.reshape(-1, 2) + off
+            # Only tracks that can still be kept are checked backwards (a quarter of them
+            # were lost or left the quarter; each point is tracked on its own, so leaving
+            # the others out changes nothing).
+            ok = (st1.ravel() == 1) & np.all(np.isfinite(new), axis=1)
+            ok &= self.region.owns(new)       # left the quarter: the neighbour takes over
+            if ok.any():
+                back, st2, _ = cv2.calcOpticalFlowPyrLK(crop, prev, b[ok], None,
+                                                        winSize=(w, w), maxLevel=lv,
+                                                        criteria=crit)
+                fb = np.linalg.norm((back - a[ok]).reshape(-1, 2), axis=1)
+                ok[ok] = (st2.ravel() == 1) & (fb < self.cfg.fb_threshold_px)
+            return new, ok
 
-            # Chunks only pay on threads: run alone, each call rebuilt both pyramids (the
-            # points are tracked independently, so one call gives the same result).
-            n = self.n_chunks(len(p0)) if self.cfg.parallel_chunks else 1
-            chunks = np.array_split(np.arange(len(p0)), n)
-            res = self._map(lk, chunks)
-            new = np.concatenate([r[0] for r in res])
-            ok = np.concatenate([r[1] for r in res])
+        # Chunks only pay on threads: run alone, each call rebuilt both pyramids (the
+        # points are tracked independently, so one call gives the same result).
+        n = self.n_chunks(len(p0)) if self.cfg.parallel_chunks else 1
+        chunks = np.array_split(np.arange(len(p0)), n)
+        res = self._map(lk, chunks)
+        return Flow(self.ids.copy(), np.concatenate([r[0] for r in res]),
+                    np.concatenate([r[1] for r in res]))
+
+    def track(self, stamp_ns: int, crop: np.ndarray, flow: Optional[Flow] = None) -> int:
+        """Track existing features from the previous crop into `crop`; returns tracks kept.
+        `flow`: this crop's flow() computed earlier; tracks dropped since are skipped (each
+        point is tracked on its own, so the result is the same as tracking now)."""
+        if flow is None:
+            flow = self.flow(crop)
+        if flow is not None and len(self.ids):
+            # The tracks left now are a subsequence of those the flow was computed for (ids
+            # only grow, so both are sorted).
+            rows = np.searchsorted(flow.ids, self.ids)
+            if np.any(rows >= len(flow.ids)) or not np.array_equal(flow.ids[rows], self.ids):
+                raise ValueError('the flow was computed for other tracks')
+            new, ok = flow.new[rows], flow.ok[rows]
             for i in self.ids[~ok]:
                 del self.history[int(i)]
             self.ids, self.pts = self.ids[ok], new[ok].astype(np.float32)

@@ -171,19 +171,13 @@ class QuarterEstimator:
         self.landmarks.reset()
         self.fused_poses: Dict[int, np.ndarray] = {}
         self.structure_ms = 0.0
+        self._prefetched = None    # (stamp, tracked-from crop, crop, flow, stage ms) of the next frame
 
     def close(self):
         self.tracker.close()
 
     # ----- per frame ---------------------------------------------------------------------
-    def process_image(self, stamp_ns: int, gray: np.ndarray) -> PoseEstimate:
-        # Stage times are CPU time of this thread, not wall time: they are the costs the
-        # coordinator balances, and on a shared machine wall time mostly measured the
-        # preemption by other processes (one camera's quarters read 20 to 380 ms per frame
-        # for the same work). OpenCV runs single-threaded in the workers (worker.py), so its
-        # work is on this thread; with `parallel_chunks` the helper threads are not counted.
-        ms: Dict[str, float] = {}
-        t0 = time.thread_time()
+    def _crop(self, gray) -> np.ndarray:
         gray = np.asarray(gray)
         if gray.dtype != np.uint8 or gray.ndim != 2:
             raise UserError(f'{self.source}: expected a gray uint8 image, got {gray.dtype} '
@@ -191,13 +185,48 @@ class QuarterEstimator:
         if (gray.shape[1], gray.shape[0]) != self.image_size:
             raise UserError(f'{self.source}: image is {gray.shape[1]}x{gray.shape[0]}, '
                             f'expected {self.image_size[0]}x{self.image_size[1]} (CameraInfo)')
-        crop = np.ascontiguousarray(self.region.crop(gray))
-        t1 = time.thread_time()
-        ms['acquire'] = (t1 - t0) * 1e3
+        return np.ascontiguousarray(self.region.crop(gray))
 
-        self.tracker.track(stamp_ns, crop)
+    def prefetch(self, stamp_ns: int, gray: np.ndarray):
+        """Crop the next frame and compute its optical flow now, while the fused pose of the
+        last frame is still on its way (the flow does not depend on it): process_image of
+        this stamp then starts from there. Results are the same as without (klt_tracker)."""
+        t0 = time.thread_time()
+        crop = self._crop(gray)
+        t1 = time.thread_time()
+        flow = self.tracker.flow(crop)
+        self._prefetched = (int(stamp_ns), self.tracker.prev_crop, crop, flow,
+                            {'acquire': (t1 - t0) * 1e3, 'track': (time.thread_time() - t1) * 1e3})
+
+    def prefetched(self, stamp_ns: int) -> bool:
+        """Whether process_image(stamp_ns, None) can start from a prefetch()."""
+        pre = self._prefetched
+        return pre is not None and pre[0] == stamp_ns and pre[1] is self.tracker.prev_crop
+
+    def process_image(self, stamp_ns: int, gray: Optional[np.ndarray]) -> PoseEstimate:
+        """`gray` may be None when prefetched(stamp_ns)."""
+        # Stage times are CPU time of this thread, not wall time: they are the costs the
+        # coordinator balances, and on a shared machine wall time mostly measured the
+        # preemption by other processes (one camera's quarters read 20 to 380 ms per frame
+        # for the same work). OpenCV runs single-threaded in the workers (worker.py), so its
+        # work is on this thread; with `parallel_chunks` the helper threads are not counted.
+        pre = self._prefetched if self.prefetched(stamp_ns) else None
+        self._prefetched = None
+        ms: Dict[str, float] = {'acquire': 0.0, 'track': 0.0}
+        flow = None
+        if pre is not None:
+            _, _, crop, flow, ms = pre
+        t0 = time.thread_time()
+        if pre is None:
+            if gray is None:
+                raise ValueError(f'{self.source}: no image and none prefetched for {stamp_ns}')
+            crop = self._crop(gray)
+        t1 = time.thread_time()
+        ms['acquire'] += (t1 - t0) * 1e3
+
+        self.tracker.track(stamp_ns, crop, flow)
         t2 = time.thread_time()
-        ms['track'] = (t2 - t1) * 1e3
+        ms['track'] += (t2 - t1) * 1e3
 
         if self.tracker.needs_features():
             self.tracker.extract(stamp_ns)
@@ -443,3 +472,4 @@ class QuarterEstimator:
         self.landmarks.set_state(s['landmarks'])
         self.fused_poses = {int(k): np.array(v, float) for k, v in s['fused_poses'].items()}
         self.structure_ms = float(s['structure_ms'])
+        self._prefetched = None

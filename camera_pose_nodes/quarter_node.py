@@ -67,6 +67,9 @@ class QuarterNode(Node):
         # hook(stamp, DiagnosticStatus) instead of publishing: a worker batches the statuses
         # of its quarters into one /diagnostics message per frame (worker.py)
         self.diag_sink = None
+        # hook(node) instead of prefetching at once: a worker runs node.prefetch() when none
+        # of its nodes has a message to handle (worker.py), so that it never delays them
+        self.prefetch_sink = None
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'pose', RELIABLE)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         # topic -> (type, QoS, callback) of the per-frame inputs
@@ -114,6 +117,7 @@ class QuarterNode(Node):
             return
         self.pending.append((time.monotonic(), msg))
         self.drain()
+        self.offer_prefetch()
 
     def on_fused(self, msg: PoseWithCovarianceStamped):
         fused = msg_to_estimate(msg)
@@ -123,6 +127,7 @@ class QuarterNode(Node):
             if self.on_frame_done is not None:
                 self.on_frame_done(self)
         self.drain()
+        self.offer_prefetch()
 
     # --- processing ---------------------------------------------------------------------
     def poll(self):
@@ -154,6 +159,31 @@ class QuarterNode(Node):
             self.pending.popleft()
             self.process(msg)
 
+    def can_prefetch(self) -> bool:
+        return (self.estimator is not None and bool(self.pending)
+                and not self.estimator.prefetched(stamp_to_ns(self.pending[0][1].header.stamp))
+                and not self.ready_for_next(self.pending[0][0]))
+
+    def offer_prefetch(self):
+        if self.can_prefetch():
+            if self.prefetch_sink is not None:
+                self.prefetch_sink(self)
+            else:
+                self.prefetch()
+
+    def prefetch(self):
+        """Pipelining: while this quarter waits for the fused pose of its last frame, the
+        next image's optical flow (which does not depend on it) is computed already."""
+        if not self.can_prefetch():
+            return
+        msg = self.pending[0][1]
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        try:
+            gray = image_msg_to_gray(msg, expected_size=self.estimator.image_size)
+            self.estimator.prefetch(stamp_ns, gray)
+        except (UserError, ValueError):
+            pass              # process() reports it when the image's turn comes
+
     def report_stale(self, msg, stamp_ns):
         # A duplicate or late image would run the tracker and the filter backwards in time.
         self.publish_diag(msg.header.stamp, 'warn',
@@ -165,12 +195,14 @@ class QuarterNode(Node):
         if self.last_processed_ns is not None and stamp_ns <= self.last_processed_ns:
             self.report_stale(msg, stamp_ns)
             return
-        try:
-            gray = image_msg_to_gray(msg, expected_size=self.estimator.image_size)
-        except (UserError, ValueError) as e:
-            self.get_logger().error(f'{self.source}: image rejected: {e}', throttle_duration_sec=5.0)
-            self.publish_diag(msg.header.stamp, 'error', f'image rejected: {e}')
-            return
+        gray = None
+        if not self.estimator.prefetched(stamp_ns):
+            try:
+                gray = image_msg_to_gray(msg, expected_size=self.estimator.image_size)
+            except (UserError, ValueError) as e:
+                self.get_logger().error(f'{self.source}: image rejected: {e}', throttle_duration_sec=5.0)
+                self.publish_diag(msg.header.stamp, 'error', f'image rejected: {e}')
+                return
         est = self.estimator.process_image(stamp_ns, gray)
         self.last_processed_ns = stamp_ns
         self.pub_pose.publish(estimate_to_msg(est))

@@ -67,6 +67,9 @@ def check_camera_topic_types(reader, rig):
 # calling it absent: normal frames take ~0.2 s, so this only fires for a stream that really
 # stopped, even on an oversubscribed machine (5 s did fire there).
 LOCKSTEP_SYNC_TIMEOUT_S = 10.0
+# Frames in flight in lockstep: the next frame's images reach the quarters while the last
+# frame's fused pose is computed, and they track it meanwhile (player.PlayOptions).
+LOCKSTEP_DEPTH = int(os.environ.get('EGO_MOTION_LOCKSTEP_DEPTH', 2))
 
 
 def graph_overrides(lockstep: bool, use_wheel: bool):
@@ -88,13 +91,18 @@ def recorded_topics(rig):
 
 
 def wait_for_graph(node, rig, bag_reader, coordinator, timeout_s=60.0):
-    """Every worker hosting quarters of a present camera subscribed to its images, and the
-    general arbiter up."""
+    """Every worker hosting quarters of a present camera subscribed to its images, every
+    quarter to its CameraInfo (one missed with the first frames left a camera out of them:
+    seen with two frames in flight), and the general arbiter up."""
     deadline = time.monotonic() + timeout_s
     present = [c for c in rig.cameras if c.image_topic in bag_reader.topics]
+    quarters = {c.name: sum(1 for s in coordinator.specs.values()
+                            if s.kind == 'quarter' and s.parameters.get('camera') == c.name)
+                for c in present}
     while time.monotonic() < deadline:
         coordinator.check_alive()
         ok = all(node.count_subscribers(c.image_topic) >= coordinator.image_readers(c.name)
+                 and node.count_subscribers(c.camera_info_topic) >= quarters[c.name]
                  for c in present)
         ok = ok and node.count_publishers('/odom') >= 1
         if ok:
@@ -226,7 +234,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
         wait_for_graph(node, rig, reader, coordinator)
         recorder.wait_for_topics(10.0)
         player = BagPlayer(bag, PlayOptions(
-            lockstep=lockstep, rate=rate, ack_topic='/odom',
+            lockstep=lockstep, lockstep_depth=LOCKSTEP_DEPTH, rate=rate, ack_topic='/odom',
             ack_timeout_s=ack_timeout, discovery_s=0.5, progress=None,
             start_offset_s=start_offset, duration_s=duration,
             between_frames=coordinator.between_frames if lockstep else None,

@@ -1,5 +1,6 @@
 """KLT extraction and tracking inside one quarter, on synthetic textures."""
 import numpy as np
+import pytest
 
 from camera_pose_nodes.klt_tracker import KLTConfig, KLTTracker, margin_for
 from camera_pose_nodes.quarter_region import QuarterRegion
@@ -114,3 +115,28 @@ def test_chunked_parallel_equals_sequential():
         assert np.array_equal(seq.pts, par.pts)
     assert seq.history == par.history
     par.close()
+
+
+def test_flow_computed_before_a_drop_tracks_the_rest_identically():
+    """A quarter computes the next flow before the last fused pose drops tracks (pipelining):
+    tracking with that flow after the drop equals tracking after the drop without it."""
+    a, reg = make()
+    b, _ = make()
+    for tr in (a, b):
+        tr.track(0, reg.crop(shifted(0, 0, 0)))
+        tr.extract(0)
+    nxt = reg.crop(shifted(0, 1.3, -0.7))
+    flow = b.flow(nxt)
+    assert np.array_equal(flow.ids, b.ids) and np.array_equal(b.prev_crop, a.prev_crop)
+    gone = a.ids[::3]
+    a.drop(gone)
+    b.drop(gone)
+    a.track(1, nxt)
+    b.track(1, nxt, flow)
+    assert np.array_equal(a.ids, b.ids) and np.array_equal(a.pts, b.pts)
+    assert a.history == b.history and len(a.ids) > 0
+    assert not set(gone.tolist()) & set(b.ids.tolist())
+    # a flow that lacks tracks (extracted since) is refused rather than mixed in
+    assert b.extract(1) > 0
+    with pytest.raises(ValueError, match='other tracks'):
+        b.track(2, nxt, flow)

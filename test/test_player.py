@@ -123,6 +123,65 @@ def test_lockstep_delivers_every_message_once_in_order(bag, rclpy_context):
         recipient.close()
 
 
+class LaggingRecipient(Recipient):
+    """Acknowledges frame k only once frame k + 1 arrived (the first and the last at once),
+    as a graph that is busy with a frame when the next one comes; records a third frame
+    arriving while two are unacknowledged."""
+
+    def __init__(self, topics):
+        super().__init__(topics, ack=False)
+        from nav_msgs.msg import Odometry
+        self.ack_pub = self.node.create_publisher(Odometry, '/odom', 10)
+        self.complete, self.acked, self.too_many = [], set(), []
+
+    def on_msg(self, topic, msg):
+        from nav_msgs.msg import Odometry
+        with self.lock:
+            self.received[topic].append(_key(topic, msg))
+            if not topic.endswith('/image_raw'):
+                return
+            stamp = _key(topic, msg)
+            self.images_per_stamp[stamp] = self.images_per_stamp.get(stamp, 0) + 1
+            if self.images_per_stamp[stamp] < len(CAMERAS):
+                return
+            if len([s for s in self.complete if s not in self.acked]) >= 2:
+                self.too_many.append(stamp)
+            self.complete.append(stamp)
+            due = [s for s in self.complete[:-1] if s not in self.acked]
+            if stamp in (T0, T0 + (N_FRAMES - 1) * PERIOD):
+                due.append(stamp)
+            for s in due:
+                odom = Odometry()
+                odom.header.stamp.sec, odom.header.stamp.nanosec = divmod(s, 10**9)
+                self.ack_pub.publish(odom)
+                self.acked.add(s)
+
+
+def test_lockstep_depth_two_sends_the_next_frame_before_the_ack(bag, rclpy_context):
+    """--lockstep-depth 2: a graph that answers frame k only after frame k + 1 arrived is
+    served (depth 1 would wait for it forever), never more than two frames ahead, every
+    message once and in order."""
+    expected = _expected(bag)
+    recipient = LaggingRecipient(list(expected))
+    try:
+        proc = run_cli('play', bag, '--lockstep', '--lockstep-depth', '2', '--ack-timeout', '10',
+                       timeout=60)
+        assert proc.returncode == 0, proc.stderr
+        time.sleep(0.3)
+        with recipient.lock:
+            assert recipient.received == expected
+            assert recipient.too_many == []
+            assert recipient.complete == [T0 + k * PERIOD for k in range(N_FRAMES)]
+        with recipient.lock:
+            recipient.images_per_stamp.clear()
+            recipient.complete, recipient.acked = [], set()
+        proc = run_cli('play', bag, '--lockstep', '--ack-timeout', '2', timeout=60)
+        assert proc.returncode != 0 and 'frame 2 ' in proc.stderr \
+            and 'was not acknowledged' in proc.stderr, proc.stderr
+    finally:
+        recipient.close()
+
+
 def test_lockstep_without_acknowledgement_names_the_frame(bag, rclpy_context):
     from nav_msgs.msg import Odometry
     silent = SpinningNode('silent_graph')  # publishes /odom but never acknowledges

@@ -47,6 +47,7 @@ import argparse
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
 from typing import Callable, Dict, Iterable, Iterator, List, Optional
@@ -66,6 +67,11 @@ class PlayOptions:
     rate: float = 1.0
     ack_topic: str = '/odom'
     ack_timeout_s: float = 30.0
+    # lockstep: trigger frames published but not yet acknowledged, at most. 1: each waits
+    # for the last; 2: the next frame is already delivered while the graph finishes the last
+    # (the graph pipelines: its quarters compute the next optical flow meanwhile). Each node
+    # still takes the frames in order, so the output is the same. Needs a stamped ack type.
+    lockstep_depth: int = 1
     lockstep_topics: Optional[List[str]] = None   # bag topic names; None: every */image_raw
     remap: Dict[str, str] = field(default_factory=dict)  # bag topic -> published topic
     start_offset_s: float = 0.0
@@ -146,6 +152,8 @@ class BagPlayer:
         self.options = opts = options or PlayOptions()
         if opts.rate <= 0:
             raise UserError(f'--rate must be positive (got {opts.rate})')
+        if opts.lockstep_depth < 1:
+            raise UserError(f'--lockstep-depth must be at least 1 (got {opts.lockstep_depth})')
         if opts.start_offset_s < 0 or (opts.duration_s is not None and opts.duration_s <= 0):
             raise UserError('--start-offset must be >= 0 and --duration > 0')
         self.reader = Rosbag2Reader(bag)
@@ -264,6 +272,9 @@ class BagPlayer:
         done_s = 0.0
         clock = Clock()
         acked_trigger = None          # index of the last acknowledged trigger frame
+        depth = opts.lockstep_depth if self._ack_stamped else 1
+        in_flight = deque()           # trigger frames published, not yet acknowledged
+        any_acked = False
         try:
             for frame in self.frames():
                 if acked_trigger is not None and opts.between_frames is not None:
@@ -286,11 +297,18 @@ class BagPlayer:
                 result.messages += len(frame.messages)
                 result.frames += 1
                 if opts.lockstep and frame.is_trigger:
-                    result.republished += self._await_ack(frame, acks_before, publishers)
-                    acked_trigger = frame.index
+                    in_flight.append(frame)
+                    # The first frame alone: the graph's first answer shows it is listening.
+                    while len(in_flight) >= (depth if any_acked else 1):
+                        result.republished += self._await_ack(in_flight, acks_before, publishers)
+                        acked_trigger = in_flight.popleft().index
+                        any_acked = True
                 now_s = (frame.log_time_ns - self.start_ns) / NS_PER_S
                 bar.update(now_s - done_s)
                 done_s = now_s
+            while in_flight:
+                result.republished += self._await_ack(in_flight, acks_before, publishers)
+                in_flight.popleft()
         finally:
             bar.close()
         result.wall_time_s = time.monotonic() - t0_wall
@@ -346,9 +364,11 @@ class BagPlayer:
         # sent before it has is dropped by it (rate mode lost its first message that way).
         self._wait(lambda: False, MATCH_SETTLE_S)
 
-    def _await_ack(self, frame: Frame, acks_before: int, publishers=None) -> int:
-        """Wait for the acknowledgement; returns how often the frame was published again."""
+    def _await_ack(self, in_flight, acks_before: int, publishers=None) -> int:
+        """Wait for the acknowledgement of the oldest frame in flight; returns how often the
+        frames in flight were published again."""
         opts = self.options
+        frame = in_flight[0]
 
         def acknowledged():
             if self._ack_stamped:
@@ -365,8 +385,9 @@ class BagPlayer:
                 return republished
             # A worker was restarted: again, until the frame is acknowledged (a copy sent
             # before the restored nodes were matched is lost for them).
-            for msg in frame.messages:
-                publishers[msg.topic].publish(bytes(msg.data))
+            for f in in_flight:
+                for msg in f.messages:
+                    publishers[msg.topic].publish(bytes(msg.data))
             republished += 1
             if self._wait(acknowledged, REPUBLISH_PERIOD_S):
                 self._republish.clear()
@@ -418,6 +439,9 @@ def configure_parser(parser: argparse.ArgumentParser):
                         help='lockstep: topic whose header.stamp acknowledges a frame')
     parser.add_argument('--ack-timeout', type=float, default=30.0, metavar='S',
                         help='lockstep: seconds to wait for an acknowledgement (default 30)')
+    parser.add_argument('--lockstep-depth', type=int, default=1, metavar='N',
+                        help='lockstep: frames published before the oldest is acknowledged '
+                             '(default 1; 2 lets a pipelining graph work ahead)')
     parser.add_argument('--lockstep-topics', nargs='+', metavar='TOPIC',
                         help=f'lockstep trigger topics (default: every {DEFAULT_LOCKSTEP_PATTERN})')
     parser.add_argument('--remap', nargs='+', default=[], metavar='FROM:=TO',
@@ -438,6 +462,7 @@ def configure_parser(parser: argparse.ArgumentParser):
 def options_from_args(args) -> PlayOptions:
     return PlayOptions(lockstep=args.lockstep, rate=args.rate, ack_topic=args.ack_topic,
                        ack_timeout_s=args.ack_timeout, lockstep_topics=args.lockstep_topics,
+                       lockstep_depth=args.lockstep_depth,
                        remap=parse_remaps(args.remap), start_offset_s=args.start_offset,
                        duration_s=args.duration, topics=args.topics, clock=args.clock,
                        progress=args.progress, discovery_s=args.discovery)

@@ -22,7 +22,7 @@ import threading
 import time
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor, TimeoutException
 from rclpy.parameter import Parameter
 
 from multicam_ego_motion.coordinator import control
@@ -117,6 +117,10 @@ class Worker:
         # the fused pose) calling each one's callback. Per quarter, they were 2 takes and 2
         # executor callbacks per frame, and 2 more readers for every publisher to write to.
         self.feeds = {}                 # topic -> (subscription, {key: callback})
+        # Work that waits until no callback is ready (spin): the quarters' next-frame optical
+        # flow while the fused pose is under way. Before other callbacks it would delay the
+        # estimates the arbiters wait for, i.e. the fused pose itself.
+        self.idle_work = []             # nodes whose prefetch() is due, in arrival order
 
     def feed(self, key, node):
         for topic, (msg_type, qos, callback) in node.inputs.items():
@@ -230,6 +234,8 @@ class Worker:
         node.destroy_timer(node.poll_timer)       # poll_nodes() polls it
         if hasattr(node, 'diag_sink'):
             node.diag_sink = self.collect_diagnostic
+        if hasattr(node, 'prefetch_sink'):
+            node.prefetch_sink = self.idle_work.append
         strip_event_handlers(node)
         self.hosted[key] = node
         if getattr(node, 'inputs', None):
@@ -257,6 +263,7 @@ class Worker:
             self.flush_diagnostics()
             state = node.get_state() if hasattr(node, 'get_state') else None
             self.unfeed(key)
+            self.idle_work[:] = [n for n in self.idle_work if n is not node]
             self.executor.remove_node(node)
             node.destroy_node()
             del self.hosted[key]
@@ -265,11 +272,33 @@ class Worker:
         # Between frames only: the state must include the last frame's fused pose.
         self.defer(getattr(node, 'idle', lambda: True), done, DETACH_IDLE_TIMEOUT_S)
 
+    def _spin(self):
+        """The executor's spin, plus idle work: one item whenever a look at the wait set
+        finds nothing ready."""
+        ex = self.executor
+        looked = False          # the last non-blocking wait yielded callbacks
+        while True:
+            try:
+                handler, _, _ = ex.wait_for_ready_callbacks(timeout_sec=0.0 if self.idle_work else None)
+            except TimeoutException:
+                # A non-blocking wait also ends in a timeout after yielding what was ready:
+                # only a wait that found nothing means idle.
+                if looked:
+                    looked = False
+                elif self.idle_work:
+                    self.idle_work.pop(0).prefetch()
+                continue
+            looked = True
+            handler()
+            if handler.exception() is not None:
+                raise handler.exception()
+            handler.result()
+
     def spin(self):
         threading.Thread(target=self.read_commands, daemon=True).start()
         self.send((control.HELLO, self.index, os.getpid()))
         try:
-            self.executor.spin()
+            self._spin()
         finally:
             for node in self.hosted.values():
                 node.destroy_node()
