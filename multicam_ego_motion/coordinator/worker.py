@@ -34,6 +34,7 @@ LINK_TIMEOUT_S = 2.0       # longest wait for a moved node's topics to be matche
 DETACH_IDLE_TIMEOUT_S = 2.0
 QUARTER_SNAPSHOT_EVERY = 5   # frames between state snapshots of a quarter node
 NODE_POLL_S = 0.1            # the nodes' own POLL_PERIOD_S
+DIAG_STRAGGLER_S = 0.25      # a frame's /diagnostics batch still incomplete after this goes out
 
 
 def _die_with_parent():
@@ -111,7 +112,7 @@ class Worker:
 
         from multicam_ego_motion.qos import RELIABLE
         self.diag_pub = self.node.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
-        self.diag_batches = {}          # (sec, nanosec) -> (stamp, [DiagnosticStatus])
+        self.diag_batches = {}          # (sec, nanosec) -> (stamp, [DiagnosticStatus], opened at)
         strip_event_handlers(self.node)
         # Shared inputs: one subscription per topic for all hosted quarters (a camera's image,
         # the fused pose) calling each one's callback. Per quarter, they were 2 takes and 2
@@ -147,11 +148,16 @@ class Worker:
     def poll_nodes(self):
         for node in list(self.hosted.values()):
             node.poll()
-        self.flush_diagnostics()
+        # Stragglers only: with two frames in flight the next frame's batch is usually still
+        # filling, and flushing it split one message a frame into two.
+        now = time.monotonic()
+        for k in sorted(self.diag_batches):
+            if now - self.diag_batches[k][2] > DIAG_STRAGGLER_S:
+                self.flush_diagnostics(k)
 
     def collect_diagnostic(self, stamp, status):
         key = (stamp.sec, stamp.nanosec)
-        batch = self.diag_batches.setdefault(key, (stamp, []))[1]
+        batch = self.diag_batches.setdefault(key, (stamp, [], time.monotonic()))[1]
         batch.append(status)
         # complete when every hosted node that reports has: its status name is its key's
         expected = {f'ego_motion/{k}' for k, n in self.hosted.items() if getattr(n, 'diag_sink', None)}
@@ -162,7 +168,7 @@ class Worker:
         """Publish the batch of `key` (all batches when None: the poll timer's stragglers)."""
         from multicam_ego_motion import diagnostics
         for k in ([key] if key is not None else sorted(self.diag_batches)):
-            stamp, statuses = self.diag_batches.pop(k)
+            stamp, statuses, _ = self.diag_batches.pop(k)
             self.diag_pub.publish(diagnostics.array(stamp, statuses))
 
     def send(self, msg):
