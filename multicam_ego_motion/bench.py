@@ -86,13 +86,14 @@ def _graph(bag, out, rig, rig_file, params, workers, lockstep, duration):
 
 
 def run(args) -> int:
-    from multicam_ego_motion import ros_domain
+    from multicam_ego_motion import dds_transport, ros_domain
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
     from multicam_ego_motion.coordinator.parallel_time_model import PAPER_IMPROVEMENT_PCT, table
     from multicam_ego_motion.replay import DEFAULT_PARAMS, resolve_rig
     from multicam_ego_motion.sequential_pipeline import run_sequential
 
     ros_domain.isolate()
+    dds_transport.use_graph_profile()
     out = Path(args.out)
     if out.exists() and any(out.iterdir()):
         raise UserError(f'output folder {out} is not empty')

@@ -266,11 +266,12 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
 
 
 def run(args) -> int:
-    from multicam_ego_motion import ros_domain
+    from multicam_ego_motion import dds_transport, ros_domain
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
     from multicam_ego_motion.replay_summary import summarize
 
     ros_domain.isolate()
+    dds_transport.use_graph_profile()
     out = Path(args.out)
     if (out / 'output').exists():
         raise UserError(f'output folder {out} already holds a replay (output/ exists)')

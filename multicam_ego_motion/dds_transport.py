@@ -1,0 +1,26 @@
+"""The Fast DDS profile of the graph's own processes (replay, bench, the workers they start).
+
+Fast DDS's default shared-memory segment is 0.5 MB: less than one frame of four 640x480
+images (4 x 307 kB), let alone two in flight. A reliable writer that finds it full leaves
+the samples to be repaired on heartbeats: four cameras at 640x480 ran 655 ms per frame on
+200 ms of CPU (M = 1), 171-186 ms with config/fastdds.xml's 4 MB segment. A profile the
+user set (FASTRTPS_DEFAULT_PROFILES_FILE) or another RMW is left alone.
+"""
+import os
+from pathlib import Path
+
+PROFILE = Path(__file__).resolve().parent.parent / 'config' / 'fastdds.xml'
+PROFILE_VAR = 'FASTRTPS_DEFAULT_PROFILES_FILE'     # Fast DDS 2.x (ros_fastrtps 2.14)
+FAST_DDS_RMWS = ('rmw_fastrtps_cpp', 'rmw_fastrtps_dynamic_cpp')
+
+
+def use_graph_profile(env=None) -> bool:
+    """Point `env` (default os.environ) at config/fastdds.xml; before rclpy.init and before
+    worker processes are started (they inherit it). Returns whether it was set."""
+    env = os.environ if env is None else env
+    if PROFILE_VAR in env or env.get('RMW_IMPLEMENTATION', FAST_DDS_RMWS[0]) not in FAST_DDS_RMWS:
+        return False
+    if not PROFILE.is_file():
+        return False
+    env[PROFILE_VAR] = str(PROFILE)
+    return True
