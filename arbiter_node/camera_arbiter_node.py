@@ -43,10 +43,22 @@ class CameraArbiterNode(Node):
         self.pub = self.create_publisher(PoseWithCovarianceStamped, 'pose', RELIABLE)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         self.diag_sink = None        # hook(stamp, status): the worker batches statuses per frame
-        for s in sources:
-            self.create_subscription(PoseWithCovarianceStamped, f'{s}/pose',
-                                     lambda m, s=s: self.on_quarter(s, m), RELIABLE)
+        self.sources = sources
+        self.quarter_subs = {}
+        self.take_local(())
         self.poll_timer = self.create_timer(POLL_PERIOD_S, self.poll)
+
+    def take_local(self, local):
+        """Quarters (`q1`...) whose estimates a host hands to on_quarter itself (worker.py:
+        co-hosted quarters): no subscription for them, every other one subscribed. Saves
+        each such estimate a take, an executor callback and a reader to write to."""
+        for s in self.sources:
+            sub = self.quarter_subs.get(s)
+            if s in local and sub is not None:
+                self.destroy_subscription(self.quarter_subs.pop(s))
+            elif s not in local and sub is None:
+                self.quarter_subs[s] = self.create_subscription(
+                    PoseWithCovarianceStamped, f'{s}/pose', lambda m, s=s: self.on_quarter(s, m), RELIABLE)
 
     def on_quarter(self, source, msg):
         est = msg_to_estimate(msg, source=f'{self.camera}/{source}')

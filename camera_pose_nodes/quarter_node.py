@@ -70,6 +70,9 @@ class QuarterNode(Node):
         # hook(node) instead of prefetching at once: a worker runs node.prefetch() when none
         # of its nodes has a message to handle (worker.py), so that it never delays them
         self.prefetch_sink = None
+        # hook(msg) after publishing an estimate: a worker hands it to a co-hosted camera
+        # arbiter directly (which then does not subscribe to it)
+        self.estimate_sink = None
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'pose', RELIABLE)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         # topic -> (type, QoS, callback) of the per-frame inputs
@@ -205,7 +208,10 @@ class QuarterNode(Node):
                 return
         est = self.estimator.process_image(stamp_ns, gray)
         self.last_processed_ns = stamp_ns
-        self.pub_pose.publish(estimate_to_msg(est))
+        msg = estimate_to_msg(est)
+        self.pub_pose.publish(msg)
+        if self.estimate_sink is not None:
+            self.estimate_sink(msg)
         level = 'ok' if est.state == 'tracking' else 'warn'
         self.publish_diag(msg.header.stamp, level, est.state, est)
 

@@ -11,6 +11,8 @@ Messages (tuples):
                          (REPLY, request_id, dict)      answer to ATTACH / DETACH
   coordinator -> worker  (ATTACH, request_id, node_spec, state_pickle_or_None, wait_links)
                          (DETACH, request_id, key)      reply carries 'state' (a pickle)
+                         (LINKS, request_id)            reply when the hosted nodes' links
+                                                        inside the graph are matched
                          (STOP,)
 """
 import os
@@ -18,7 +20,7 @@ import secrets
 from multiprocessing.connection import Client, Listener
 
 HELLO, SNAPSHOT, REPLY = 'hello', 'snapshot', 'reply'
-ATTACH, DETACH, STOP = 'attach', 'detach', 'stop'
+ATTACH, DETACH, LINKS, STOP = 'attach', 'detach', 'links', 'stop'
 KEY_ENV = 'EGO_MOTION_CONTROL_KEY'
 
 

@@ -130,6 +130,7 @@ class Coordinator:
         for h in self.workers:
             self._wait_ready(h)
             self._attach_all(h)
+        self._await_links(self.workers)
         if self.spare:
             self._spare = WorkerHandle(-1)
             self._spawn(self._spare)
@@ -298,6 +299,15 @@ class Coordinator:
         reqs = [self._post(h, control.ATTACH, self.specs[k].to_dict(), self.snapshots.get(k), False)
                 for k in self.nodes_of(h.index)]
         self._collect(h, control.ATTACH, reqs)
+
+    def _await_links(self, handles):
+        """Every worker's nodes matched to the rest of the graph (worker.links)."""
+        reqs = [(h, self._post(h, control.LINKS)) for h in handles]
+        late = [h.index for h, req in reqs
+                if not self._collect(h, control.LINKS, [req], timeout=REPLY_TIMEOUT_S)[0].get('linked')]
+        if late:
+            self.say(f'worker(s) {", ".join(map(str, late))}: not every link of their nodes '
+                     'matched in time; the first frames may wait for sync timeouts')
 
     # ---- crash recovery ---------------------------------------------------------------------
     def _watch(self):

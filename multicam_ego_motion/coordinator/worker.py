@@ -31,6 +31,7 @@ from multicam_ego_motion.lean_node import strip_event_handlers
 
 PR_SET_PDEATHSIG = 1
 LINK_TIMEOUT_S = 2.0       # longest wait for a moved node's topics to be matched
+START_LINK_TIMEOUT_S = 10.0  # longest wait for the whole graph's links at start-up
 DETACH_IDLE_TIMEOUT_S = 2.0
 QUARTER_SNAPSHOT_EVERY = 5   # frames between state snapshots of a quarter node
 NODE_POLL_S = 0.1            # the nodes' own POLL_PERIOD_S
@@ -70,14 +71,22 @@ def create_node(spec: dict, params_file: str = None, **kwargs):
                                     cli_args=cli_args, start_parameter_services=False, **kwargs)
 
 
-def linked(node, shared=()) -> bool:
+# Inputs from outside the graph (the player, a driver): not awaited by LINKS at start-up,
+# where nothing publishes them yet. Wheel odometry is optional anyway.
+EXTERNAL_INPUTS = ('/image_raw', '/camera_info', '/wheel/odom')
+
+
+def linked(node, shared=(), graph_only=False) -> bool:
     """Every input (its own subscriptions and the `shared` ones that feed it) has a publisher
     and every estimate output a subscriber: a moved node must not miss the next frame because
-    discovery was still under way."""
+    discovery was still under way. graph_only: only the inputs from other graph nodes."""
+    skip = EXTERNAL_INPUTS if graph_only else ('/wheel/odom',)
     subs_ok = all(s.get_publisher_count() > 0 for s in list(node.subscriptions) + list(shared)
-                  if not s.topic_name.endswith('/wheel/odom'))   # wheel odometry is optional
+                  if not s.topic_name.endswith(skip))
+    local = getattr(node, 'estimate_sink', None) is not None     # its arbiter is co-hosted
     pubs_ok = all(p.get_subscription_count() > 0 for p in node.publishers
-                  if p.topic_name.endswith('/pose') or p.topic_name == '/ego_motion/fused_pose')
+                  if (p.topic_name.endswith('/pose') and not local)
+                  or p.topic_name == '/ego_motion/fused_pose')
     return subs_ok and pubs_ok
 
 
@@ -90,6 +99,7 @@ class Worker:
         self.inbox = queue.Queue()
         self.deferred = []              # (predicate, action, deadline): waits off the executor
         self.hosted = {}                # key -> node
+        self.kinds = {}                 # key -> node kind
         self.frames_done = {}           # key -> frames finished (snapshot cadence)
         self.node = rclpy.create_node(
             f'ego_motion_worker_{index}' if index >= 0 else f'ego_motion_worker_spare_{os.getpid()}',
@@ -141,6 +151,23 @@ class Worker:
             if not callbacks:
                 self.node.destroy_subscription(sub)
                 del self.feeds[topic]
+
+    def wire_local(self):
+        """Quarter estimates go to a camera arbiter of the same worker by a call (they are
+        still published, for the recorder and anyone else); the arbiter subscribes only to
+        its quarters hosted elsewhere. Redone whenever a node comes or goes."""
+        arbiters = {n.camera: n for k, n in self.hosted.items() if self.kinds[k] == 'camera_arbiter'}
+        local = {}
+        for k, n in self.hosted.items():
+            if self.kinds[k] != 'quarter':
+                continue
+            arb = arbiters.get(n.camera.name)
+            source = f'q{n.quarter}'
+            n.estimate_sink = None if arb is None else (lambda msg, a=arb, s=source: a.on_quarter(s, msg))
+            local.setdefault(n.camera.name, set()).add(source)
+        for cam, arb in arbiters.items():
+            arb.take_local(local.get(cam, set()))
+            strip_event_handlers(arb)
 
     def shared_subscriptions(self, node):
         return [self.feeds[t][0] for t in getattr(node, 'inputs', {}) if t in self.feeds]
@@ -196,6 +223,8 @@ class Worker:
                 self.attach(*cmd[1:])
             elif cmd[0] == control.DETACH:
                 self.detach(*cmd[1:])
+            elif cmd[0] == control.LINKS:
+                self.links(*cmd[1:])
 
     def defer(self, predicate, action, timeout_s):
         self.deferred.append((predicate, action, time.monotonic() + timeout_s))
@@ -244,8 +273,10 @@ class Worker:
             node.prefetch_sink = self.idle_work.append
         strip_event_handlers(node)
         self.hosted[key] = node
+        self.kinds[key] = spec['kind']
         if getattr(node, 'inputs', None):
             self.feed(key, node)
+        self.wire_local()
         self.executor.add_node(node)
         # Which process hosts what: read by people after a crash, and by the fault tests.
         print(f'worker {self.index} (pid {os.getpid()}) hosts {", ".join(self.hosted)}', flush=True)
@@ -258,6 +289,18 @@ class Worker:
             time.sleep(0.05)        # the other side of each match (writer vs reader) catches up
             self.send((control.REPLY, req, {'ok': True, 'linked': in_time}))
         self.defer(lambda: linked(node, self.shared_subscriptions(node)), done, LINK_TIMEOUT_S)
+
+    def links(self, req):
+        """Reply once every hosted node's links to the rest of the graph are matched (both
+        ends: a writer that matched a reader before the reader matched it loses samples).
+        At start-up: a camera estimate of the first frame published before the general
+        arbiter's reader had matched was lost, and the frame waited for the sync timeout."""
+        nodes = list(self.hosted.values())
+
+        def done(in_time):
+            self.send((control.REPLY, req, {'ok': True, 'linked': in_time}))
+        self.defer(lambda: all(linked(n, self.shared_subscriptions(n), graph_only=True) for n in nodes),
+                   done, START_LINK_TIMEOUT_S)
 
     def detach(self, req, key):
         node = self.hosted.get(key)
@@ -273,6 +316,8 @@ class Worker:
             self.executor.remove_node(node)
             node.destroy_node()
             del self.hosted[key]
+            del self.kinds[key]
+            self.wire_local()
             self.send((control.REPLY, req, {'ok': True, 'idle': idle,
                                             'state': pickle.dumps(state, protocol=pickle.HIGHEST_PROTOCOL)}))
         # Between frames only: the state must include the last frame's fused pose.
