@@ -45,6 +45,7 @@ NODE_PARAMETERS = {
     'use_wheel_odometry': (True, 'fuse /wheel/odom as a body-twist prior when it is published', None, None),
     'wheel_odometry_topic': ('/wheel/odom', 'wheel odometry (nav_msgs/Odometry)', None, None),
     'sync_timeout_s': (0.5, 'longest wait for all cameras of one frame', 0.0, 60.0),
+    'wheel_wait_s': (0.5, 'then the longest wait for the wheel reading of that frame (while a wheel publisher is connected)', 0.0, 60.0),
     'path_max_poses': (5000, 'poses kept on /ego_motion/path (oldest dropped)', 1, 1000000),
     'path_min_spacing_m': (0.05, '/ego_motion/path keeps a pose every this many metres', 0.0, 100.0),
     'path_min_turn_rad': (0.1, '... or every this much rotation', 0.0, 3.15),
@@ -76,14 +77,25 @@ class GeneralArbiterNode(Node):
         for cam in self.rig.cameras:
             self.create_subscription(PoseWithCovarianceStamped, f'/{cam.name}/pose',
                                      lambda m, n=cam.name: self.on_camera(n, m), RELIABLE)
+        self.held = []                       # (sync group, since): waiting for its wheel reading
+        self.wheel_sub = None
         if p['use_wheel_odometry']:
-            self.create_subscription(Odometry, p['wheel_odometry_topic'], self.on_wheel, RELIABLE)
+            self.wheel_sub = self.create_subscription(Odometry, p['wheel_odometry_topic'],
+                                                      self.on_wheel, RELIABLE)
         self.create_service(Trigger, '~/reset', self.on_reset)
         self.poll_timer = self.create_timer(POLL_PERIOD_S, self.poll)
         self.get_logger().info(f'fusing cameras {", ".join(self.rig.names)}')
 
     def on_wheel(self, msg: Odometry):
         self.wheel.add(stamp_to_ns(msg.header.stamp), *twist_from_odometry(msg))
+        self.fuse_held()
+
+    def wheel_settled(self, stamp_ns) -> bool:
+        # A frame whose cameras are all in is fused once its wheel reading is in too: fusing
+        # it with the previous reading depended on which callback the executor took first
+        # (a lockstep replay once differed from another in frame 13).
+        return (self.wheel_sub is None or self.wheel_sub.get_publisher_count() == 0
+                or self.wheel.settled(stamp_ns))
 
     def on_camera(self, name, msg):
         est = msg_to_estimate(msg, source=name)
@@ -103,7 +115,16 @@ class GeneralArbiterNode(Node):
         self.release(self.sync.poll(time.monotonic()))
 
     def release(self, groups):
-        for g in groups:
+        now = time.monotonic()
+        self.held.extend((g, now) for g in groups)
+        self.fuse_held()
+
+    def fuse_held(self):
+        while self.held:
+            g, since = self.held[0]
+            if not self.wheel_settled(g.stamp_ns) and time.monotonic() - since < self.p['wheel_wait_s']:
+                return
+            self.held.pop(0)
             t0 = time.thread_time()
             # Rig order, not arrival order: float sums must not depend on the scheduler.
             items = {n: g.items[n] for n in self.rig.names if n in g.items}

@@ -46,6 +46,14 @@ class WheelBuffer:
         self.max_age_ns = state['max_age_ns']
         self.readings = list(zip(state['stamps'], state['twists'], state['covariances']))
 
+    def settled(self, stamp_ns: int) -> bool:
+        """Whether at(stamp_ns) is final: a reading at or after the stamp arrived, or the
+        wheel went silent before it. (None yet: unknown, not final.)"""
+        if not self.readings:
+            return False
+        newest = self.readings[-1][0]
+        return newest >= stamp_ns or stamp_ns - newest >= self.max_age_ns
+
     def at(self, stamp_ns: int) -> Optional[Tuple[np.ndarray, np.ndarray]]:
         """The newest reading not after stamp_ns, if it is fresh; else None."""
         for s, twist, cov in reversed(self.readings):

@@ -32,6 +32,9 @@ def configure_parser(p):
     p.add_argument('--start-offset', type=float, default=0.0, help='skip this much of the bag [s]')
     p.add_argument('--duration', type=float, help='play only this much of the bag [s]')
     p.add_argument('--no-rebalance', action='store_true', help='keep the start allocation')
+    p.add_argument('--lockstep-depth', type=int, default=LOCKSTEP_DEPTH, metavar='N',
+                   help=f'lockstep: frames in flight (default {LOCKSTEP_DEPTH}: the graph pipelines; '
+                        'the odometry is the same for any N)')
     p.add_argument('--migrate-every', type=int, default=0, metavar='K',
                    help='debug (lockstep): move one quarter node to the next worker every K frames')
 
@@ -69,7 +72,7 @@ def check_camera_topic_types(reader, rig):
 LOCKSTEP_SYNC_TIMEOUT_S = 10.0
 # Frames in flight in lockstep: the next frame's images reach the quarters while the last
 # frame's fused pose is computed, and they track it meanwhile (player.PlayOptions).
-LOCKSTEP_DEPTH = int(os.environ.get('EGO_MOTION_LOCKSTEP_DEPTH', 2))
+LOCKSTEP_DEPTH = 2
 
 
 def graph_overrides(lockstep: bool, use_wheel: bool):
@@ -79,6 +82,7 @@ def graph_overrides(lockstep: bool, use_wheel: bool):
                         'feedback_timeout_s': wait},
             'camera_arbiter': {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2},
             'general_arbiter': {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2,
+                                'wheel_wait_s': 2.0 if lockstep else 0.05,
                                 'use_wheel_odometry': use_wheel}}
 
 
@@ -171,7 +175,8 @@ def make_link_waiter(rig, player, timeout_s=2.0):
 
 def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rate=1.0,
               use_wheel=True, ack_timeout=120.0, start_offset=0.0, duration=None,
-              migrate_every=0, rebalance=True, logger=print, record_topics=None) -> GraphRun:
+              migrate_every=0, rebalance=True, logger=print, record_topics=None,
+              lockstep_depth=LOCKSTEP_DEPTH) -> GraphRun:
     """Coordinator + in-process player and recorder: one run of the graph over a bag."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -234,7 +239,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
         wait_for_graph(node, rig, reader, coordinator)
         recorder.wait_for_topics(10.0)
         player = BagPlayer(bag, PlayOptions(
-            lockstep=lockstep, lockstep_depth=LOCKSTEP_DEPTH, rate=rate, ack_topic='/odom',
+            lockstep=lockstep, lockstep_depth=lockstep_depth, rate=rate, ack_topic='/odom',
             ack_timeout_s=ack_timeout, discovery_s=0.5, progress=None,
             start_offset_s=start_offset, duration_s=duration,
             between_frames=coordinator.between_frames if lockstep else None,
@@ -301,7 +306,7 @@ def run(args) -> int:
                   rate=args.rate or 1.0, use_wheel=not args.no_wheel, ack_timeout=args.ack_timeout,
                   start_offset=args.start_offset, duration=args.duration,
                   migrate_every=args.migrate_every, rebalance=not args.no_rebalance,
-                  logger=lambda t: print(t, flush=True))
+                  logger=lambda t: print(t, flush=True), lockstep_depth=args.lockstep_depth)
     st = g.coordinator.stats
     print(f'coordinator: {st.migrations} migrations ({st.rebalances} rebalances), '
           f'{st.restarts} worker restarts'

@@ -1,6 +1,7 @@
 """Moving quarter nodes between workers mid-run (state hand-over) changes nothing: in
 lockstep a run with forced migrations skips no frame and publishes the same odometry as a
-run without. Also the prerequisite: two plain lockstep runs are identical."""
+run without. Also the prerequisite: two plain lockstep runs are identical, and pipelining
+(two frames in flight, the default) gives the same odometry as one frame at a time."""
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,7 @@ def runs(tmp_path_factory):
     base = tmp_path_factory.mktemp('migration')
     plain = [replay(base / f'plain{i}') for i in range(2)]
     moved = replay(base / 'moved', '--migrate-every', 3)
+    replay(base / 'depth1', '--lockstep-depth', 1)
     return base, plain, moved
 
 
@@ -34,6 +36,14 @@ def test_two_lockstep_runs_are_identical(runs):
     base, _, _ = runs
     s1, p1 = odometry(base / 'plain0')
     s2, p2 = odometry(base / 'plain1')
+    assert len(s1) == FRAMES and s1 == s2
+    assert np.array_equal(p1, p2)
+
+
+def test_pipelining_changes_nothing(runs):
+    base, _, _ = runs
+    s1, p1 = odometry(base / 'plain0')
+    s2, p2 = odometry(base / 'depth1')
     assert len(s1) == FRAMES and s1 == s2
     assert np.array_equal(p1, p2)
 

@@ -41,3 +41,15 @@ def test_buffer_is_bounded():
     for i in range(1000):
         b.add(i, twist(1.0), COV)
     assert len(b.readings) <= 200
+
+
+def test_settled_once_a_reading_at_or_after_the_frame_came_or_the_wheel_went_silent():
+    buf = WheelBuffer(max_age_ns=500)
+    assert not buf.settled(100)                   # nothing heard yet: not final
+    tw, cov = np.zeros(6), np.eye(6)
+    buf.add(90, tw, cov)
+    assert not buf.settled(100)                   # the frame's own reading may still come
+    buf.add(100, tw, cov)
+    assert buf.settled(100) and buf.settled(95)
+    assert not buf.settled(101)
+    assert buf.settled(600)                       # 500 ns without a reading: silent

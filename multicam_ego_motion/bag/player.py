@@ -275,8 +275,17 @@ class BagPlayer:
         depth = opts.lockstep_depth if self._ack_stamped else 1
         in_flight = deque()           # trigger frames published, not yet acknowledged
         any_acked = False
+        read_error = []
+
+        def frames():
+            # A bag that turns out damaged mid-way ends playback, but only after the frames
+            # already published were acknowledged: their output must not be lost.
+            try:
+                yield from self.frames()
+            except UserError as e:
+                read_error.append(e)
         try:
-            for frame in self.frames():
+            for frame in frames():
                 if acked_trigger is not None and opts.between_frames is not None:
                     opts.between_frames(acked_trigger)
                 acked_trigger = None
@@ -309,6 +318,8 @@ class BagPlayer:
             while in_flight:
                 result.republished += self._await_ack(in_flight, acks_before, publishers)
                 in_flight.popleft()
+            if read_error:
+                raise read_error[0]
         finally:
             bar.close()
         result.wall_time_s = time.monotonic() - t0_wall
