@@ -56,16 +56,20 @@ def test_coordinator_moves_nodes_when_the_left_camera_goes_bare(run):
     moves = [l for l in out if l.startswith('coordinator: moved ')]
     assert rebalances, run.stdout
     assert 1 <= len(moves) <= 4 and len(rebalances) <= 2, run.stdout     # no thrashing
-    # start: whole cameras, left with right; the first move goes to that worker (it got cheaper)
+    # start: whole cameras, left with right; nodes move to that worker once it got cheaper
+    # (a move the other way may come first: the textured start measured the workers 46-50 vs
+    # 57-70 ms once on this VM, a legitimate rebalance before the wall)
     start = next(l for l in out if l.startswith('coordinator: allocation'))
     left_worker = int(start.split('left/q1')[0].rsplit('worker ', 1)[1].split(':')[0])
-    assert moves[0].split(': worker ')[1].split(' in ')[0].endswith(f'-> {left_worker}'), moves
+    into_left = [k for k, m in enumerate(moves)
+                 if m.split(': worker ')[1].split(' in ')[0].endswith(f'-> {left_worker}')]
+    assert into_left, moves
 
     coord = run.diagnostics('ego_motion/coordinator')
     assert coord and {'imbalance', 'migrations', 'rebalances', f'worker_{left_worker}'} <= set(coord[0].values)
     assert int(coord[-1].values['migrations']) == len(moves)
     assert int(coord[-1].values['rebalances']) == len(rebalances)
-    t_move = min(d.t for d in coord if int(d.values['migrations']) > 0)
+    t_move = min(d.t for d in coord if int(d.values['migrations']) > into_left[0])
     assert t_move > START_S + 1.5
     # what the coordinator answered: the left camera's measured cost fell (bare wall)
     costs = camera_costs(run)
