@@ -114,6 +114,11 @@ class QuarterNode(Node):
         # restart, for the nodes that lost it) is processed once.
         stamp_ns = stamp_to_ns(msg.header.stamp)
         if any(stamp_to_ns(m.header.stamp) == stamp_ns for _, m in self.pending):
+            # (reported like one that came after its frame was processed: which of the two
+            # it is depends only on how far the quarter had got)
+            self.publish_diag(msg.header.stamp, 'warn',
+                              f'image dropped: stamp {stamp_ns / 1e9:.6f} s is already waiting '
+                              'to be processed (duplicate or out of order)')
             return
         if self.last_processed_ns is not None and stamp_ns <= self.last_processed_ns:
             self.report_stale(msg, stamp_ns)
