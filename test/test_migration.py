@@ -32,20 +32,21 @@ def runs(tmp_path_factory):
     return base, plain, moved
 
 
-def test_two_lockstep_runs_are_identical(runs):
-    base, _, _ = runs
-    s1, p1 = odometry(base / 'plain0')
-    s2, p2 = odometry(base / 'plain1')
+def assert_identical_odometry(a, b):
+    s1, p1 = odometry(a)
+    s2, p2 = odometry(b)
     assert len(s1) == FRAMES and s1 == s2
     assert np.array_equal(p1, p2)
+
+
+def test_two_lockstep_runs_are_identical(runs):
+    base, _, _ = runs
+    assert_identical_odometry(base / 'plain0', base / 'plain1')
 
 
 def test_pipelining_changes_nothing(runs):
     base, _, _ = runs
-    s1, p1 = odometry(base / 'plain0')
-    s2, p2 = odometry(base / 'depth1')
-    assert len(s1) == FRAMES and s1 == s2
-    assert np.array_equal(p1, p2)
+    assert_identical_odometry(base / 'plain0', base / 'depth1')
 
 
 def test_forced_migrations_skip_no_frame_and_change_nothing(runs):
