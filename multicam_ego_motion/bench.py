@@ -189,6 +189,21 @@ def run(args) -> int:
     g1_ms, g2_ms = rows[1][1], rows[2][1]
     lines += [f'| rate mode, M = 2: CPU per frame, graph / player+recorder+coordinator [ms] '
               f'| {gr.cpu_workers_s / max(frames_r, 1) * 1e3:.1f} / {gr.cpu_replay_s / max(frames_r, 1) * 1e3:.1f} |']
+    # What the CPU time alone allows, however well the work overlaps: the graph's CPU per
+    # frame (workers, and the player/recorder/coordinator sharing the same cores) spread over
+    # min(M, cores). Where a target is beyond these, no schedule reaches it on this machine.
+    cores = os.cpu_count() or 1
+    _, _, cpu2, cpu_r2 = min(lockstep_runs[2])
+    ceiling = Ts / ((cpu2 + cpu_r2) / min(2, cores))
+    cpu_rate = (gr.cpu_workers_s + gr.cpu_replay_s) / max(frames_r, 1) * 1e3
+    cores_needed = cpu_rate * (n_frames / bag_s) / 1e3 if bag_s > 0 else float('nan')
+    lines += ['', '| bounds from the CPU time (any schedule, perfect overlap) | value |', '|---|---:|',
+              f'| speedup at M = 2 the CPU per frame allows: Ts / ((graph + player...) CPU / '
+              f'{min(2, cores)} cores) | {ceiling:.2f} |',
+              f'| sequential CPU / graph CPU (with player...) per frame at M = 2: what transport leaves '
+              f'| {Ts_cpu / (cpu2 + cpu_r2):.2f} |',
+              f'| cores needed, at least, for real time at the bag\'s {n_frames / bag_s:.1f} Hz '
+              f'(rate-mode CPU per frame x rate) | {cores_needed:.2f} of {cores} |']
     lines += ['', 'Targets: speedup at M = 2 >= 1.8: '
               f'{Ts / g2_ms:.2f} ({"met" if Ts / g2_ms >= 1.8 else "missed"}); graph at M = 1 <= 1.25 x '
               f'sequential: {g1_ms / Ts:.2f} x ({"met" if g1_ms / Ts <= 1.25 else "missed"}); real time with '
