@@ -47,7 +47,7 @@ def run(args) -> int:
     from tqdm import tqdm
 
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
-    from multicam_ego_motion.bench import fusion_params_from, quarter_params_from
+    from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
     from multicam_ego_motion.replay import DEFAULT_PARAMS, resolve_rig
     from multicam_ego_motion.sequential_pipeline import run_sequential
 

@@ -149,7 +149,7 @@ def test_params_file_sets_every_fusion_parameter_with_its_type():
     # the code's default, a wrong type (0 for 0.0) would make the node refuse to start.
     from pathlib import Path
 
-    from multicam_ego_motion.bench import fusion_params_from
+    from multicam_ego_motion.params_file import fusion_params_from
     params = fusion_params_from(Path(__file__).resolve().parents[1] / 'config' / 'params.yaml')
     defaults = default_params()
     assert set(params) == set(defaults)

@@ -1,0 +1,26 @@
+"""The values a ROS 2 params file (config/params.yaml) gives the nodes, for the ROS-free
+runs (sequential baseline, ablation) that must run what the graph runs."""
+import yaml
+
+
+def node_params(params_file, node_name, names):
+    """The values a params file gives node `node_name` (any namespace), among `names`."""
+    with open(params_file) as f:
+        doc = yaml.safe_load(f) or {}
+    out = {}
+    for section, body in doc.items():
+        if section.endswith(node_name):
+            out.update({k: v for k, v in (body or {}).get('ros__parameters', {}).items() if k in names})
+    return out
+
+
+def quarter_params_from(params_file):
+    from camera_pose_nodes.quarter_estimator import QuarterParams
+    return node_params(params_file, 'quarter_node', set(QuarterParams.__dataclass_fields__))
+
+
+def fusion_params_from(params_file):
+    """The general arbiter's fusion parameters, so that the sequential baseline runs what the
+    graph runs."""
+    from arbiter_node.general_fusion import PARAMETERS
+    return node_params(params_file, 'general_arbiter', set(PARAMETERS))
