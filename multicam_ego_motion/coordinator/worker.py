@@ -26,6 +26,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor, T
 from rclpy.parameter import Parameter
 
 from multicam_ego_motion.coordinator import control
+from multicam_ego_motion.coordinator.idle_gc import IdleCollector
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.lean_node import strip_event_handlers
 
@@ -132,6 +133,7 @@ class Worker:
         # flow while the fused pose is under way. Before other callbacks it would delay the
         # estimates the arbiters wait for, i.e. the fused pose itself.
         self.idle_work = []             # nodes whose prefetch() is due, in arrival order
+        self.gc = IdleCollector()       # last: everything imported and set up is frozen
 
     def feed(self, key, node):
         for topic, (msg_type, qos, callback) in node.inputs.items():
@@ -325,12 +327,13 @@ class Worker:
 
     def _spin(self):
         """The executor's spin, plus idle work: one item whenever a look at the wait set
-        finds nothing ready."""
+        finds nothing ready, then garbage collection (idle_gc)."""
         ex = self.executor
         looked = False          # the last non-blocking wait yielded callbacks
         while True:
             try:
-                handler, _, _ = ex.wait_for_ready_callbacks(timeout_sec=0.0 if self.idle_work else None)
+                handler, _, _ = ex.wait_for_ready_callbacks(
+                    timeout_sec=0.0 if self.idle_work or self.gc.due() else None)
             except TimeoutException:
                 # A non-blocking wait also ends in a timeout after yielding what was ready:
                 # only a wait that found nothing means idle.
@@ -338,8 +341,11 @@ class Worker:
                     looked = False
                 elif self.idle_work:
                     self.idle_work.pop(0).prefetch()
+                else:
+                    self.gc.collect_idle()
                 continue
             looked = True
+            self.gc.collect_if_overdue()
             handler()
             if handler.exception() is not None:
                 raise handler.exception()
