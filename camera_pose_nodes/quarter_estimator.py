@@ -27,7 +27,7 @@ from camera_pose_nodes.quarter_region import QuarterRegion
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.rig import CameraMount
 
-STATE_VERSION = 3     # 2: landmarks carry covariances; 3: and which are on the floor
+STATE_VERSION = 4     # 2: landmarks carry covariances; 3: and which are on the floor; 4: extract_ms
 STAGES = ('acquire', 'extract', 'track', 'pose', 'structure')
 _ROTATION_ONLY_POSITION_VARIANCE = 1.0e2   # m^2: 'position not measured', still < UNINFORMATIVE
 _TRIANGULATION_VIEWS = 5     # views per DLT: oldest, newest and evenly spaced between
@@ -171,7 +171,9 @@ class QuarterEstimator:
         self.landmarks.reset()
         self.fused_poses: Dict[int, np.ndarray] = {}
         self.structure_ms = 0.0
+        self.extract_ms = 0.0
         self._prefetched = None    # (stamp, tracked-from crop, crop, flow, stage ms) of the next frame
+        self._extract_due = None   # stamp whose new features are still to be extracted
 
     def close(self):
         self.tracker.close()
@@ -191,6 +193,7 @@ class QuarterEstimator:
         """Crop the next frame and compute its optical flow now, while the fused pose of the
         last frame is still on its way (the flow does not depend on it): process_image of
         this stamp then starts from there. Results are the same as without (klt_tracker)."""
+        self.extract_pending()     # the flow must cover the last frame's new features
         t0 = time.thread_time()
         crop = self._crop(gray)
         t1 = time.thread_time()
@@ -205,6 +208,7 @@ class QuarterEstimator:
 
     def process_image(self, stamp_ns: int, gray: Optional[np.ndarray]) -> PoseEstimate:
         """`gray` may be None when prefetched(stamp_ns)."""
+        self.extract_pending()
         # Stage times are CPU time of this thread, not wall time: they are the costs the
         # coordinator balances, and on a shared machine wall time mostly measured the
         # preemption by other processes (one camera's quarters read 20 to 380 ms per frame
@@ -228,10 +232,14 @@ class QuarterEstimator:
         t2 = time.thread_time()
         ms['track'] += (t2 - t1) * 1e3
 
+        # New features are extracted later (extract_pending): they have no landmark and no
+        # earlier view, so they take no part in this frame's estimate, and a worker extracts
+        # them once the estimate is out, in its idle time (latency).
         if self.tracker.needs_features():
-            self.tracker.extract(stamp_ns)
+            self._extract_due = int(stamp_ns)
+        ms['extract'] = self.extract_ms     # ran after the previous estimate
+        self.extract_ms = 0.0
         t3 = time.thread_time()
-        ms['extract'] = (t3 - t2) * 1e3
 
         self.ekf.predict(stamp_ns)
         has, X = self.landmarks.lookup(self.tracker.ids)
@@ -276,6 +284,20 @@ class QuarterEstimator:
             return uninformative(stamp_ns, self.ekf.T_odom_base, self.source, state, **kw)
         return PoseEstimate(stamp_ns, self.ekf.T_odom_base, cov,
                             source=self.source, state=state, **kw)
+
+    def extraction_due(self) -> bool:
+        return self._extract_due is not None
+
+    def extract_pending(self):
+        """Extract the new features of the last frame, if due. Runs by itself before anything
+        that depends on them (the fused pose's structure, the next frame, the state); a host
+        may run it earlier, when idle. Either way the results are the same."""
+        if self._extract_due is None:
+            return
+        t0 = time.thread_time()
+        self.tracker.extract(self._extract_due)
+        self._extract_due = None
+        self.extract_ms += (time.thread_time() - t0) * 1e3
 
     def _epipolar_update(self, stamp_ns, without_landmark) -> int:
         """Epipolar measurements of the tracks without a landmark (see PoseEKF.update_epipolar),
@@ -325,6 +347,7 @@ class QuarterEstimator:
         """Realign to the fused pose of frame `stamp_ns`, then triangulate and prune
         landmarks with it. Returns the structure stage time (ms), also reported with the
         next frame's estimate. An uninformative fused pose carries nothing and is ignored."""
+        self.extract_pending()     # the new features are part of the structure (floor seeding)
         t0 = time.thread_time()
         T = np.asarray(T_odom_base, float)
         C = np.asarray(cov6, float)
@@ -451,12 +474,13 @@ class QuarterEstimator:
     def get_state(self) -> dict:
         """Everything needed to continue in another process with identical results
         (picklable: numpy arrays, dicts, lists, numbers)."""
+        self.extract_pending()     # (the same tracks as if it had run already)
         return {'version': STATE_VERSION, 'source': self.source,
                 'params': asdict(self.params), 'image_size': self.image_size,
                 'ekf': self.ekf.get_state(), 'tracker': self.tracker.get_state(),
                 'landmarks': self.landmarks.get_state(),
                 'fused_poses': {k: v.copy() for k, v in self.fused_poses.items()},
-                'structure_ms': self.structure_ms}
+                'structure_ms': self.structure_ms, 'extract_ms': self.extract_ms}
 
     def set_state(self, s: dict):
         if s.get('version') != STATE_VERSION:
@@ -472,4 +496,6 @@ class QuarterEstimator:
         self.landmarks.set_state(s['landmarks'])
         self.fused_poses = {int(k): np.array(v, float) for k, v in s['fused_poses'].items()}
         self.structure_ms = float(s['structure_ms'])
+        self.extract_ms = float(s['extract_ms'])
         self._prefetched = None
+        self._extract_due = None

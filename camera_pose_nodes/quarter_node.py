@@ -82,9 +82,9 @@ class QuarterNode(Node):
         # hook(stamp, DiagnosticStatus) instead of publishing: a worker batches the statuses
         # of its quarters into one /diagnostics message per frame (worker.py)
         self.diag_sink = None
-        # hook(node) instead of prefetching at once: a worker runs node.prefetch() when none
-        # of its nodes has a message to handle (worker.py), so that it never delays them
-        self.prefetch_sink = None
+        # hook(node) instead of working ahead at once: a worker runs node.work_ahead() when
+        # none of its nodes has a message to handle (worker.py), so that it never delays them
+        self.work_ahead_sink = None
         # hook(msg) after publishing an estimate: a worker hands it to a co-hosted camera
         # arbiter directly (which then does not subscribe to it)
         self.estimate_sink = None
@@ -140,7 +140,7 @@ class QuarterNode(Node):
             return
         self.pending.append((time.monotonic(), msg))
         self.drain()
-        self.offer_prefetch()
+        self.offer_work_ahead()
 
     def on_fused(self, msg: PoseWithCovarianceStamped):
         fused = decode_fused(msg)
@@ -150,7 +150,7 @@ class QuarterNode(Node):
             if self.on_frame_done is not None:
                 self.on_frame_done(self)
         self.drain()
-        self.offer_prefetch()
+        self.offer_work_ahead()
 
     # --- processing ---------------------------------------------------------------------
     def poll(self):
@@ -187,12 +187,19 @@ class QuarterNode(Node):
                 and not self.estimator.prefetched(stamp_to_ns(self.pending[0][1].header.stamp))
                 and not self.ready_for_next(self.pending[0][0]))
 
-    def offer_prefetch(self):
-        if self.can_prefetch():
-            if self.prefetch_sink is not None:
-                self.prefetch_sink(self)
+    def offer_work_ahead(self):
+        if self.estimator is not None and (self.estimator.extraction_due() or self.can_prefetch()):
+            if self.work_ahead_sink is not None:
+                self.work_ahead_sink(self)
             else:
-                self.prefetch()
+                self.work_ahead()
+
+    def work_ahead(self):
+        """What can be done before it is needed: the last frame's new features (the estimate
+        is out already), then the next image's optical flow."""
+        if self.estimator is not None:
+            self.estimator.extract_pending()
+        self.prefetch()
 
     def prefetch(self):
         """Pipelining: while this quarter waits for the fused pose of its last frame, the

@@ -129,10 +129,11 @@ class Worker:
         # the fused pose) calling each one's callback. Per quarter, they were 2 takes and 2
         # executor callbacks per frame, and 2 more readers for every publisher to write to.
         self.feeds = {}                 # topic -> (subscription, {key: callback})
-        # Work that waits until no callback is ready (spin): the quarters' next-frame optical
-        # flow while the fused pose is under way. Before other callbacks it would delay the
-        # estimates the arbiters wait for, i.e. the fused pose itself.
-        self.idle_work = []             # nodes whose prefetch() is due, in arrival order
+        # Work that waits until no callback is ready (spin): the quarters' new features once
+        # their estimates are out, and their next-frame optical flow while the fused pose is
+        # under way. Before other callbacks it would delay the estimates the arbiters wait
+        # for, i.e. the fused pose itself.
+        self.idle_work = []             # nodes whose work_ahead() is due, in arrival order
         self.gc = IdleCollector()       # last: everything imported and set up is frozen
 
     def feed(self, key, node):
@@ -271,8 +272,8 @@ class Worker:
         node.destroy_timer(node.poll_timer)       # poll_nodes() polls it
         if hasattr(node, 'diag_sink'):
             node.diag_sink = self.collect_diagnostic
-        if hasattr(node, 'prefetch_sink'):
-            node.prefetch_sink = self.idle_work.append
+        if hasattr(node, 'work_ahead_sink'):
+            node.work_ahead_sink = self.idle_work.append
         strip_event_handlers(node)
         self.hosted[key] = node
         self.kinds[key] = spec['kind']
@@ -340,7 +341,7 @@ class Worker:
                 if looked:
                     looked = False
                 elif self.idle_work:
-                    self.idle_work.pop(0).prefetch()
+                    self.idle_work.pop(0).work_ahead()
                 else:
                     self.gc.collect_idle()
                 continue
