@@ -136,6 +136,12 @@ class Worker:
         self.idle_work = []             # nodes whose work_ahead() is due, in arrival order
         self.gc = IdleCollector()       # last: everything imported and set up is frozen
 
+    def offer_idle_work(self, node):
+        # Once per node: a quarter offers after each image and each fused pose, and a worker
+        # that is never idle (overloaded) would otherwise queue every offer.
+        if not any(n is node for n in self.idle_work):
+            self.idle_work.append(node)
+
     def feed(self, key, node):
         for topic, (msg_type, qos, callback) in node.inputs.items():
             if topic not in self.feeds:
@@ -273,7 +279,7 @@ class Worker:
         if hasattr(node, 'diag_sink'):
             node.diag_sink = self.collect_diagnostic
         if hasattr(node, 'work_ahead_sink'):
-            node.work_ahead_sink = self.idle_work.append
+            node.work_ahead_sink = self.offer_idle_work
         strip_event_handlers(node)
         self.hosted[key] = node
         self.kinds[key] = spec['kind']
