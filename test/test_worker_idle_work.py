@@ -1,7 +1,4 @@
 """A worker's queue of idle work (worker.py), with a real rclpy node but no graph."""
-import rclpy
-
-from multicam_ego_motion import ros_domain
 from multicam_ego_motion.coordinator.worker import Worker
 
 
@@ -13,11 +10,7 @@ class Quarter:
         self.ran += 1
 
 
-def test_a_node_that_offers_work_again_is_queued_once_in_first_offer_order(monkeypatch):
-    # a DDS domain of its own for this test only (the environment is restored after it)
-    for k, v in ros_domain.isolate({}).items():
-        monkeypatch.setenv(k, v)
-    rclpy.init()
+def test_a_node_that_offers_work_again_is_queued_once_in_first_offer_order(rclpy_context):
     worker = Worker(0, conn=None, params_file=None)
     try:
         a, b = Quarter(), Quarter()
@@ -29,5 +22,5 @@ def test_a_node_that_offers_work_again_is_queued_once_in_first_offer_order(monke
         assert worker.idle_work == [b, a] and a.ran == 1
     finally:
         worker.gc.close()
+        worker.executor.shutdown()
         worker.node.destroy_node()
-        rclpy.try_shutdown()
