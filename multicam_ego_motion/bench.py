@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from multicam_ego_motion.errors import UserError
 
 MODEL_WORKERS = (2, 4, 6, 8, 10, 14, 16, 24, 48)
