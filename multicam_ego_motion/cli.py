@@ -19,6 +19,7 @@ SUBCOMMANDS = {
     'replay': ('multicam_ego_motion.replay', 'run the whole graph on a bag and score it'),
     'bench': ('multicam_ego_motion.bench', 'measure sequential vs parallel timing'),
     'ablation': ('multicam_ego_motion.ablation', 'fused vs single cameras vs single quarters on a bag'),
+    'matrix': ('multicam_ego_motion.accuracy_matrix', 'accuracy matrix: seeds x scenarios through the sequential pipeline'),
 }
 
 
