@@ -10,7 +10,7 @@ give identical results.
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Dict, List, NamedTuple, Optional, Tuple
+from typing import NamedTuple, Optional
 
 import numpy as np
 import cv2
@@ -58,22 +58,73 @@ class KLTTracker:
         self.next_id = 0
         self.ids = np.zeros(0, dtype=np.int64)
         self.pts = np.zeros((0, 2), dtype=np.float32)     # full-image pixels
-        self.history: Dict[int, List[Tuple[int, float, float]]] = {}
+        # Each track's observations as rows of fixed-size arrays (no Python object per
+        # track): stamps, pixels, and how many of the max_history slots are used. The
+        # oldest view is always kept (it has the parallax); the rest slide.
+        H = self.cfg.max_history
+        self.hist_t = np.zeros((0, H), dtype=np.int64)
+        self.hist_uv = np.zeros((0, H, 2), dtype=np.float32)
+        self.hist_n = np.zeros(0, dtype=np.int64)
         self.prev_crop = None      # previous frame's crop: what the next frame is tracked from
         self._cur_crop = None
 
     def get_state(self) -> dict:
         return {'next_id': self.next_id, 'ids': self.ids.copy(), 'pts': self.pts.copy(),
-                'history': {k: list(v) for k, v in self.history.items()},
+                'hist_t': self.hist_t.copy(), 'hist_uv': self.hist_uv.copy(),
+                'hist_n': self.hist_n.copy(),
                 'prev_crop': None if self.prev_crop is None else self.prev_crop.copy()}
 
     def set_state(self, s: dict):
         self.next_id = int(s['next_id'])
         self.ids = np.asarray(s['ids'], dtype=np.int64).copy()
         self.pts = np.asarray(s['pts'], dtype=np.float32).copy()
-        self.history = {int(k): list(v) for k, v in s['history'].items()}
+        self.hist_t = np.asarray(s['hist_t'], dtype=np.int64).copy()
+        self.hist_uv = np.asarray(s['hist_uv'], dtype=np.float32).copy()
+        self.hist_n = np.asarray(s['hist_n'], dtype=np.int64).copy()
+        if self.hist_t.shape != (len(self.ids), self.cfg.max_history):
+            raise ValueError(f'tracker state has history {self.hist_t.shape}, expected '
+                             f'({len(self.ids)}, {self.cfg.max_history})')
         self.prev_crop = None if s['prev_crop'] is None else np.array(s['prev_crop'], np.uint8)
         self._cur_crop = self.prev_crop
+
+    # ----- history -----------------------------------------------------------------------
+    def last_stamps(self) -> np.ndarray:
+        """Stamp of each track's newest observation."""
+        return self.hist_t[np.arange(len(self.ids)), self.hist_n - 1]
+
+    def last_px(self) -> np.ndarray:
+        """Pixel of each track's newest observation (float64)."""
+        return self.hist_uv[np.arange(len(self.ids)), self.hist_n - 1].astype(np.float64)
+
+    def views_used(self) -> np.ndarray:
+        """(N, max_history) mask of the history slots in use."""
+        return np.arange(self.cfg.max_history)[None, :] < self.hist_n[:, None]
+
+    def history_of(self, track_id: int):
+        """[(stamp, u, v), ...] of one track, oldest first."""
+        r = int(np.searchsorted(self.ids, track_id))
+        if r >= len(self.ids) or self.ids[r] != track_id:
+            raise KeyError(track_id)
+        n = int(self.hist_n[r])
+        return [(int(t), float(u), float(v)) for t, (u, v) in
+                zip(self.hist_t[r, :n].tolist(), self.hist_uv[r, :n].tolist())]
+
+    def _keep(self, keep: np.ndarray):
+        self.ids, self.pts = self.ids[keep], self.pts[keep]
+        self.hist_t, self.hist_uv, self.hist_n = self.hist_t[keep], self.hist_uv[keep], self.hist_n[keep]
+
+    def _append_views(self, stamp_ns: int):
+        """Append the current positions as every track's newest view."""
+        H = self.cfg.max_history
+        full = self.hist_n == H
+        if full.any():                     # drop the second-oldest: the oldest has the parallax
+            self.hist_t[full, 1:H - 1] = self.hist_t[full, 2:]
+            self.hist_uv[full, 1:H - 1] = self.hist_uv[full, 2:]
+        rows = np.arange(len(self.ids))
+        col = np.minimum(self.hist_n, H - 1)
+        self.hist_t[rows, col] = stamp_ns
+        self.hist_uv[rows, col] = self.pts
+        self.hist_n = np.minimum(self.hist_n + 1, H)
 
     def close(self):
         if self._pool is not None:
@@ -148,14 +199,9 @@ class KLTTracker:
             if np.any(rows >= len(flow.ids)) or not np.array_equal(flow.ids[rows], self.ids):
                 raise ValueError('the flow was computed for other tracks')
             new, ok = flow.new[rows], flow.ok[rows]
-            for i in self.ids[~ok]:
-                del self.history[int(i)]
-            self.ids, self.pts = self.ids[ok], new[ok].astype(np.float32)
-            for i, (u, v) in zip(self.ids.tolist(), self.pts.tolist()):
-                h = self.history[i]
-                h.append((stamp_ns, u, v))
-                if len(h) > self.cfg.max_history:
-                    del h[1]                       # keep the oldest view: it has the parallax
+            self._keep(ok)
+            self.pts = new[ok].astype(np.float32)
+            self._append_views(stamp_ns)
         crop = np.ascontiguousarray(crop)
         self.prev_crop = self._cur_crop = crop.copy()
         return len(self.ids)
@@ -223,10 +269,16 @@ class KLTTracker:
         if len(new):
             new_ids = np.arange(self.next_id, self.next_id + len(new), dtype=np.int64)
             self.next_id += len(new)
-            for i, (u, v) in zip(new_ids.tolist(), new.tolist()):
-                self.history[i] = [(stamp_ns, u, v)]
+            H = self.cfg.max_history
+            t = np.zeros((len(new), H), np.int64)
+            t[:, 0] = stamp_ns
+            uv = np.zeros((len(new), H, 2), np.float32)
+            uv[:, 0] = new
             self.ids = np.concatenate([self.ids, new_ids])
             self.pts = np.concatenate([self.pts, new])
+            self.hist_t = np.concatenate([self.hist_t, t])
+            self.hist_uv = np.concatenate([self.hist_uv, uv])
+            self.hist_n = np.concatenate([self.hist_n, np.ones(len(new), np.int64)])
         return len(new)
 
     def drop(self, ids):
@@ -234,7 +286,4 @@ class KLTTracker:
         ids = np.asarray(list(ids), dtype=np.int64)
         if not len(ids):
             return
-        keep = ~np.isin(self.ids, ids)
-        for i in self.ids[~keep]:
-            self.history.pop(int(i), None)
-        self.ids, self.pts = self.ids[keep], self.pts[keep]
+        self._keep(~np.isin(self.ids, ids))

@@ -14,8 +14,6 @@ itself through the map: the loop's heading crept ~0.05 deg per frame on straight
 with all cameras agreeing. With the covariance in the measurement noise, such landmarks
 weigh little along their ray and the long-baseline ones hold the pose.
 """
-from typing import Dict
-
 import numpy as np
 
 from camera_pose_nodes.camera_model import projection_jacobian
@@ -72,6 +70,9 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 class LandmarkMap:
+    """Landmarks by track id, as arrays sorted by id (no Python object per landmark): the
+    quarter looks up, checks and updates all of its tracks' landmarks at once."""
+
     def __init__(self, parallax_deg=2.0, max_reproj_px=2.0, min_depth=0.1, max_depth=200.0,
                  refine_factor=2.0, focal_px=500.0, pixel_sigma=1.0):
         self.parallax_deg = float(parallax_deg)
@@ -83,44 +84,101 @@ class LandmarkMap:
         self.sigma_n = float(pixel_sigma) / self.focal_px
         self.reset()
 
+    _FIELDS = ('ids', 'X', 'C', 'parallax', 'on_floor')
+
     def reset(self):
-        self.points: Dict[int, np.ndarray] = {}
-        self.parallax: Dict[int, float] = {}
-        self.covariances: Dict[int, np.ndarray] = {}
-        self.on_floor = set()     # ids placed on the floor (ground_plane)
+        self.ids = np.zeros(0, np.int64)           # sorted
+        self.X = np.zeros((0, 3))                  # points in odom
+        self.C = np.zeros((0, 3, 3))               # their covariances
+        # parallax (deg) of the last triangulation; NaN: never triangulated (placed on the floor)
+        self.parallax = np.zeros(0)
+        self.on_floor = np.zeros(0, bool)          # placed on the floor (ground_plane)
 
     def get_state(self) -> dict:
-        return {'points': {k: v.copy() for k, v in self.points.items()},
-                'parallax': dict(self.parallax),
-                'covariances': {k: v.copy() for k, v in self.covariances.items()},
-                'on_floor': sorted(self.on_floor)}
+        return {k: getattr(self, k).copy() for k in self._FIELDS}
 
     def set_state(self, s: dict):
-        self.points = {int(k): np.array(v, float) for k, v in s['points'].items()}
-        self.parallax = {int(k): float(v) for k, v in s['parallax'].items()}
-        self.covariances = {int(k): np.array(v, float) for k, v in s['covariances'].items()}
-        self.on_floor = set(int(i) for i in s['on_floor'])
+        self.ids = np.asarray(s['ids'], np.int64).copy()
+        self.X = np.asarray(s['X'], float).reshape(-1, 3).copy()
+        self.C = np.asarray(s['C'], float).reshape(-1, 3, 3).copy()
+        self.parallax = np.asarray(s['parallax'], float).copy()
+        self.on_floor = np.asarray(s['on_floor'], bool).copy()
+        if not (len(self.ids) == len(self.X) == len(self.C) == len(self.parallax) == len(self.on_floor)):
+            raise ValueError('landmark state arrays differ in length')
 
     def __len__(self):
-        return len(self.points)
+        return len(self.ids)
+
+    def __contains__(self, track_id) -> bool:
+        return bool(self.rows(np.array([track_id]))[0][0])
+
+    def rows(self, ids: np.ndarray):
+        """(mask of ids with a landmark, their rows in the arrays)."""
+        ids = np.asarray(ids, dtype=np.int64)
+        r = np.searchsorted(self.ids, ids)
+        has = r < len(self.ids)
+        has[has] = self.ids[r[has]] == ids[has]
+        return has, r[has]
 
     def lookup(self, ids: np.ndarray):
         """(mask of ids with a landmark, their points M x 3)."""
-        ids = np.asarray(ids, dtype=np.int64)
-        has = np.array([i in self.points for i in ids.tolist()], bool)
-        X = np.array([self.points[i] for i in ids[has].tolist()]).reshape(-1, 3)
-        return has, X
+        has, r = self.rows(ids)
+        return has, self.X[r]
+
+    def point(self, track_id: int) -> np.ndarray:
+        has, r = self.rows([track_id])
+        if not has[0]:
+            raise KeyError(track_id)
+        return self.X[r[0]]
 
     def covariances_of(self, ids: np.ndarray) -> np.ndarray:
         """(M, 3, 3) covariances of landmarks `ids` (all must have one)."""
-        return np.array([self.covariances[i] for i in np.asarray(ids, np.int64).tolist()]).reshape(-1, 3, 3)
+        has, r = self.rows(ids)
+        if not has.all():
+            raise KeyError(f'no landmark for track(s) {np.asarray(ids)[~has].tolist()}')
+        return self.C[r]
 
-    def want(self, track_id: int, parallax_deg: float) -> bool:
-        """Is a (re-)triangulation of this track worth doing at this parallax?"""
-        if parallax_deg < self.parallax_deg:
-            return False
-        old = self.parallax.get(int(track_id))
-        return old is None or parallax_deg >= self.refine_factor * old
+    def floor_count(self, ids: np.ndarray) -> int:
+        """How many of `ids` have a landmark placed on the floor."""
+        _, r = self.rows(ids)
+        return int(self.on_floor[r].sum())
+
+    def want(self, track_ids, parallax_deg):
+        """Is a (re-)triangulation of these tracks worth doing at these parallaxes? (scalar
+        or arrays)"""
+        ids = np.atleast_1d(np.asarray(track_ids, np.int64))
+        par = np.broadcast_to(np.asarray(parallax_deg, float), ids.shape)
+        old = np.full(len(ids), np.nan)
+        has, r = self.rows(ids)
+        old[has] = self.parallax[r]
+        w = (par >= self.parallax_deg) & (np.isnan(old) | (par >= self.refine_factor * old))
+        return bool(w[0]) if np.ndim(track_ids) == 0 else w
+
+    def _upsert(self, ids, X, C, parallax, on_floor: bool):
+        """Set landmarks `ids` (unique); parallax None keeps an existing landmark's record."""
+        ids = np.asarray(ids, np.int64)
+        if not len(ids):
+            return
+        has, r = self.rows(ids)
+        self.X[r] = X[has]
+        self.C[r] = C[has]
+        self.on_floor[r] = on_floor
+        if parallax is not None:
+            self.parallax[r] = parallax[has]
+        new = ~has
+        if new.any():
+            par_new = np.full(int(new.sum()), np.nan) if parallax is None else parallax[new]
+            ids_all = np.concatenate([self.ids, ids[new]])
+            order = np.argsort(ids_all, kind='stable')
+            self.ids = ids_all[order]
+            self.X = np.concatenate([self.X, X[new]])[order]
+            self.C = np.concatenate([self.C, C[new]])[order]
+            self.parallax = np.concatenate([self.parallax, par_new])[order]
+            self.on_floor = np.concatenate([self.on_floor, np.full(int(new.sum()), on_floor)])[order]
+
+    def _keep(self, keep: np.ndarray):
+        for k in self._FIELDS:
+            setattr(self, k, getattr(self, k)[keep])
 
     def triangulate(self, ids: np.ndarray, R_oc: np.ndarray, c_o: np.ndarray,
                     xy: np.ndarray, view_weights=None) -> np.ndarray:
@@ -146,11 +204,7 @@ class LandmarkMap:
             return ok
         w = np.ones(xy.shape[:2]) if view_weights is None else np.asarray(view_weights, float)
         C = triangulation_covariance(Xc[ok], R_oc[ok], w[ok], self.sigma_n)
-        for i, X_i, p, C_i in zip(ids[ok].tolist(), X[ok], par[ok].tolist(), C):
-            self.on_floor.discard(i)
-            self.points[i] = X_i
-            self.parallax[i] = p
-            self.covariances[i] = C_i
+        self._upsert(ids[ok], X[ok], C, par[ok], on_floor=False)
         return ok
 
     def check(self, ids: np.ndarray, R_oc: np.ndarray, c_o: np.ndarray,
@@ -159,36 +213,30 @@ class LandmarkMap:
         camera (R_oc 3x3, c_o 3: one camera pose; xy N x 2 observations). Returns the mask
         of dropped ids."""
         ids = np.asarray(ids, dtype=np.int64)
-        has, X = self.lookup(ids)
+        has, r = self.rows(ids)
         bad = np.zeros(len(ids), bool)
         if not has.any():
             return bad
-        Xc = (X - c_o) @ R_oc
+        Xc = (self.X[r] - c_o) @ R_oc
         depth = Xc[:, 2]
         zs = np.where(depth > 1e-9, depth, 1e-9)
         err = np.linalg.norm(Xc[:, :2] / zs[:, None] - xy[has], axis=1) * self.focal_px
         bad_h = (depth <= self.min_depth) | (err > self.max_reproj_px) | ~np.isfinite(err)
         bad[np.flatnonzero(has)[bad_h]] = True
-        for i in ids[bad].tolist():
-            self.forget(i)
+        keep = np.ones(len(self.ids), bool)
+        keep[r[bad_h]] = False
+        self._keep(keep)
         return bad
 
     def place(self, ids: np.ndarray, X: np.ndarray, C: np.ndarray):
         """Move landmarks `ids` onto the floor: X (M, 3) with covariances C (M, 3, 3), known
         better than their triangulation (ground_plane); their parallax record stays."""
-        for i, X_i, C_i in zip(np.asarray(ids, np.int64).tolist(), X, C):
-            self.points[i] = np.array(X_i, float)
-            self.covariances[i] = np.array(C_i, float)
-            self.on_floor.add(i)
+        self._upsert(ids, np.asarray(X, float).reshape(-1, 3), np.asarray(C, float).reshape(-1, 3, 3),
+                     None, on_floor=True)
 
     def forget(self, track_id: int):
-        self.points.pop(int(track_id), None)
-        self.parallax.pop(int(track_id), None)
-        self.covariances.pop(int(track_id), None)
-        self.on_floor.discard(int(track_id))
+        self._keep(self.ids != int(track_id))
 
     def keep_only(self, live_ids):
         """Landmarks of tracks that no longer exist are of no use to a tracking-only map."""
-        live = set(int(i) for i in live_ids)
-        for i in [i for i in self.points if i not in live]:
-            self.forget(i)
+        self._keep(np.isin(self.ids, np.asarray(live_ids, np.int64)))

@@ -27,24 +27,24 @@ from camera_pose_nodes.quarter_region import QuarterRegion
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.rig import CameraMount
 
-STATE_VERSION = 4     # 2: landmarks carry covariances; 3: and which are on the floor; 4: extract_ms
+STATE_VERSION = 5     # 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays
 STAGES = ('acquire', 'extract', 'track', 'pose', 'structure')
 _ROTATION_ONLY_POSITION_VARIANCE = 1.0e2   # m^2: 'position not measured', still < UNINFORMATIVE
 _TRIANGULATION_VIEWS = 5     # views per DLT: oldest, newest and evenly spaced between
 
 
 @lru_cache(maxsize=None)
-def _view_indices(n_views: int) -> tuple:
-    # Which of a track's n views go into the DLT (computed once per n: this ran ~35 times per
-    # quarter and frame, a few percent of a worker's CPU).
-    return tuple(np.linspace(0, n_views - 1, _TRIANGULATION_VIEWS).round().astype(int).tolist())
-
-
-@lru_cache(maxsize=None)
-def _distinct_views(n_views: int) -> tuple:
-    # 1 for each view _view_indices lists first, 0 for a repeat (short tracks repeat views)
-    js = _view_indices(n_views)
-    return tuple(1.0 if v == 0 or js[v] != js[v - 1] else 0.0 for v in range(len(js)))
+def _view_tables(max_views: int):
+    """For a track with m fused views (row m, up to max_views): which of them go into the DLT
+    (oldest, newest and evenly spaced between), and 1 for each listed first, 0 for a repeat
+    (short tracks repeat views). Tables, so that all tracks are looked up at once."""
+    idx = np.zeros((max_views + 1, _TRIANGULATION_VIEWS), np.int64)
+    distinct = np.zeros((max_views + 1, _TRIANGULATION_VIEWS))
+    for m in range(1, max_views + 1):
+        js = np.linspace(0, m - 1, _TRIANGULATION_VIEWS).round().astype(int)
+        idx[m] = js
+        distinct[m] = [1.0 if v == 0 or js[v] != js[v - 1] else 0.0 for v in range(len(js))]
+    return idx, distinct
 
 # name -> (default, description, min, max). The node declares its ROS parameters from this.
 PARAMETERS = {
@@ -170,6 +170,7 @@ class QuarterEstimator:
         self.ekf.reset()
         self.landmarks.reset()
         self.fused_poses: Dict[int, np.ndarray] = {}
+        self._fused_cache = None
         self.structure_ms = 0.0
         self.extract_ms = 0.0
         self._prefetched = None    # (stamp, tracked-from crop, crop, flow, stage ms) of the next frame
@@ -276,9 +277,8 @@ class QuarterEstimator:
             state = 'initializing'
         else:
             state = 'lost'
-        on_floor = self.landmarks.on_floor
         kw = dict(n_features=len(self.tracker.ids), n_landmarks=int(has.sum()),
-                  n_floor=sum(1 for i in self.tracker.ids[has].tolist() if i in on_floor),
+                  n_floor=self.landmarks.floor_count(self.tracker.ids[has]),
                   n_inliers=n_inliers + n_epipolar, stage_ms=ms)
         if state != 'tracking':
             return uninformative(stamp_ns, self.ekf.T_odom_base, self.source, state, **kw)
@@ -299,36 +299,46 @@ class QuarterEstimator:
         self._extract_due = None
         self.extract_ms += (time.thread_time() - t0) * 1e3
 
+    def _fused_arrays(self):
+        """(sorted stamps (K,), body poses (K, 4, 4), camera rotations (K, 3, 3), camera
+        centres (K, 3)) of the fused poses, rebuilt when they changed."""
+        if self._fused_cache is None:
+            st = np.array(sorted(self.fused_poses), np.int64)
+            T = np.array([self.fused_poses[k] for k in st.tolist()]).reshape(-1, 4, 4)
+            R_oc, c_o = self._camera_pose(T)
+            self._fused_cache = (st, T, R_oc, c_o)
+        return self._fused_cache
+
     def _epipolar_update(self, stamp_ns, without_landmark) -> int:
         """Epipolar measurements of the tracks without a landmark (see PoseEKF.update_epipolar),
         each against its oldest view that has a fused pose. Returns the inlier count."""
-        tr, fused = self.tracker, self.fused_poses
-        rows, first_T, first_px = [], [], []
-        body_p = self.ekf.T_odom_base[:3, 3]
-        moved = {}    # fused stamp -> has the body moved enough since (one test per stamp)
-        for row, i in zip(np.flatnonzero(without_landmark).tolist(),
-                          tr.ids[without_landmark].tolist()):
-            h = tr.history[i]
-            if h[-1][0] != stamp_ns:
-                continue
-            # the oldest view with a fused pose: the longest baseline, the best-defined line
-            o = next((h[k] for k in range(len(h) - 1) if h[k][0] in fused), None)
-            if o is None:
-                continue
-            # The body itself must have moved: spinning in place only swings the camera on its
-            # lever arm, a baseline too short for its direction to be known from the poses.
-            ok = moved.get(o[0])
-            if ok is None:
-                ok = moved[o[0]] = bool(np.linalg.norm(fused[o[0]][:3, 3] - body_p)
-                                        >= self.params.epipolar_min_baseline)
-            if ok:
-                rows.append(row)
-                first_T.append(fused[o[0]])
-                first_px.append(o[1:])
-        if not rows:
+        tr = self.tracker
+        if not self.fused_poses:
             return 0
-        R_oc, c_o = self._camera_pose(np.array(first_T))
-        xy1 = self.intrinsics.undistort_points(np.array(first_px, float))
+        rows = np.flatnonzero(without_landmark & (tr.last_stamps() == stamp_ns))
+        if not len(rows):
+            return 0
+        fs, fT, _, _ = self._fused_arrays()
+        H = tr.cfg.max_history
+        # the oldest view with a fused pose (not the current one): the longest baseline, the
+        # best-defined line
+        ht = tr.hist_t[rows]
+        infused = (np.arange(H)[None, :] < (tr.hist_n[rows] - 1)[:, None]) & np.isin(ht, fs)
+        found = infused.any(axis=1)
+        rows, col = rows[found], np.argmax(infused[found], axis=1)
+        slot = np.searchsorted(fs, tr.hist_t[rows, col])
+        # The body itself must have moved: spinning in place only swings the camera on its
+        # lever arm, a baseline too short for its direction to be known from the poses.
+        body_p = self.ekf.T_odom_base[:3, 3]
+        moved = np.linalg.norm(fT[:, :3, 3] - body_p, axis=1) >= self.params.epipolar_min_baseline
+        ok = moved[slot]
+        rows, col, slot = rows[ok], col[ok], slot[ok]
+        if not len(rows):
+            return 0
+        first_T = fT[slot]
+        first_px = tr.hist_uv[rows, col].astype(float)
+        R_oc, c_o = self._camera_pose(first_T)
+        xy1 = self.intrinsics.undistort_points(first_px)
         rays = bearings_odom(R_oc, xy1)
         xy2 = self.intrinsics.undistort_points(tr.pts[rows].astype(float))
         # both ends are noisy: the line distance has about sqrt(2) pixel sigmas
@@ -366,6 +376,7 @@ class QuarterEstimator:
             self.ekf.set_pose(T, C)
         # (older stamps: a late message, still good for triangulation)
         self.fused_poses[stamp_ns] = T.copy()
+        self._fused_cache = None
         self._prune_landmarks(stamp_ns, T)
         self._triangulate()
         if first and self.uses_floor:
@@ -380,43 +391,48 @@ class QuarterEstimator:
 
     def _prune_landmarks(self, stamp_ns, T):
         tr = self.tracker
-        seen = np.array([tr.history[int(i)][-1][0] == stamp_ns for i in tr.ids], bool)
+        seen = tr.last_stamps() == stamp_ns
         if not seen.any():
             return
         ids = tr.ids[seen]
-        px = np.array([tr.history[int(i)][-1][1:] for i in ids])
         R_oc, c_o = self._camera_pose(T)
-        bad = self.landmarks.check(ids, R_oc, c_o, self.intrinsics.undistort_points(px))
+        bad = self.landmarks.check(ids, R_oc, c_o, self.intrinsics.undistort_points(tr.last_px()[seen]))
         # A landmark that stopped fitting usually means the track drifted: restart both.
         tr.drop(ids[bad])
 
     def _triangulate(self):
-        tr, lm, fused = self.tracker, self.landmarks, self.fused_poses
-        cand, obs_of = [], []
-        for i in tr.ids.tolist():
-            obs = [o for o in tr.history[i] if o[0] in fused]
-            if len(obs) < 2:
-                continue
-            cand.append(i)
-            obs_of.append(obs)
-        if not cand:
+        tr, lm = self.tracker, self.landmarks
+        if not len(tr.ids):
             return
+        fs, fT, R_all, c_all = self._fused_arrays()
+        # the views of each track that have a fused pose, in order: their columns first
+        infused = tr.views_used() & np.isin(tr.hist_t, fs)
+        m = infused.sum(axis=1)
+        rows = np.flatnonzero(m >= 2)
+        if not len(rows):
+            return
+        m = m[rows]
+        order = np.argsort(~infused[rows], axis=1, kind='stable')
         # Ray angle between the oldest and newest views (rotation-compensated in odom). Only
         # those two views are needed to decide; the tracks that pass get all their views
         # below (every step is per point and view, so the values are the same either way).
-        R_oc, c_o, xy = self._views([[obs[0], obs[-1]] for obs in obs_of])
+        r = np.arange(len(rows))
+        ends = np.column_stack([order[:, 0], order[r, m - 1]])
+        R_oc, c_o, xy = self._views(rows, ends, fs, R_all, c_all)
         rays = bearings_odom(R_oc, xy)
         par = angle_deg(rays[:, 0], rays[:, -1])
-        want = [k for k, (i, p) in enumerate(zip(cand, par.tolist())) if lm.want(i, p)]
-        if want:
-            views = [[obs_of[k][j] for j in _view_indices(len(obs_of[k]))] for k in want]
-            distinct = np.array([_distinct_views(len(obs_of[k])) for k in want])
-            ids = np.array(cand)[want]
-            R_oc, c_o, xy = self._views(views)
-            ok = lm.triangulate(ids, R_oc, c_o, xy, view_weights=distinct)
-            if self.uses_floor and ok.any():
-                self._snap_to_floor(ids[ok], R_oc[ok, -1], c_o[ok, -1], xy[ok, -1],
-                                    [views[k][-1][0] for k in np.flatnonzero(ok).tolist()])
+        want = lm.want(tr.ids[rows], par)
+        if not want.any():
+            return
+        idx, distinct = _view_tables(tr.cfg.max_history)
+        rows, order, m = rows[want], order[want], m[want]
+        cols = np.take_along_axis(order, idx[m], axis=1)
+        ids = tr.ids[rows]
+        R_oc, c_o, xy = self._views(rows, cols, fs, R_all, c_all)
+        ok = lm.triangulate(ids, R_oc, c_o, xy, view_weights=distinct[m])
+        if self.uses_floor and ok.any():
+            last = np.searchsorted(fs, tr.hist_t[rows[ok], cols[ok, -1]])
+            self._snap_to_floor(ids[ok], R_oc[ok, -1], c_o[ok, -1], xy[ok, -1], fT[last])
 
     def _seed_floor(self, stamp_ns, T):
         """With its first fused pose (the start, or after a reset) a quarter puts the features
@@ -427,13 +443,13 @@ class QuarterEstimator:
         checks. Only at the start: seeding whenever a map ran thin (fast turns) made
         spin_then_drive's drift 0.7 -> 1.5 % (seed 7) and 0.6 -> 3.5 % (seed 8)."""
         tr = self.tracker
-        rows = [r for r, i in enumerate(tr.ids.tolist())
-                if i not in self.landmarks.points and tr.history[i][-1][0] == stamp_ns]
-        if not rows:
+        has, _ = self.landmarks.rows(tr.ids)
+        rows = np.flatnonzero(~has & (tr.last_stamps() == stamp_ns))
+        if not len(rows):
             return
         ids = tr.ids[rows]
         R_oc, c_o = self._camera_pose(T)
-        xy = self.intrinsics.undistort_points(np.array([tr.history[i][-1][1:] for i in ids.tolist()], float))
+        xy = self.intrinsics.undistort_points(tr.last_px()[rows])
         n, d = floor_plane(T, self.floor_z)
         N = len(rows)
         valid, X, _, C = floor_points(bearings_odom(np.broadcast_to(R_oc, (N, 3, 3)), xy),
@@ -441,34 +457,31 @@ class QuarterEstimator:
                                       np.full(N, d), self.landmarks.sigma_n)
         self.landmarks.place(ids[valid], X[valid], C[valid])
 
-    def _snap_to_floor(self, ids, R_oc, c_o, xy, stamps):
-        """Floor landmarks onto the floor, judged from each one's newest view."""
+    def _snap_to_floor(self, ids, R_oc, c_o, xy, T):
+        """Floor landmarks onto the floor, judged from each one's newest view (body poses T)."""
         _, X = self.landmarks.lookup(ids)
-        T = np.array([self.fused_poses[s] for s in stamps])
         p = self.params
         on, X_f, C_f = snap_to_floor(X, self.landmarks.covariances_of(ids), R_oc, c_o, xy, T,
                                      self.floor_z, p.ground_tolerance, p.ground_map_scale_std,
                                      self.landmarks.sigma_n)
         self.landmarks.place(ids[on], X_f, C_f)
 
-    def _views(self, views):
-        """(R_oc, c_o, xy) of observations (stamp, u, v) given as N rows of V views."""
-        V = len(views[0])
-        # stamps stay Python ints: ns stamps do not fit a float64 mantissa
-        px = np.array([[o[1:] for o in row] for row in views], float)      # (N, V, 2)
-        xy = self.intrinsics.undistort_points(px.reshape(-1, 2)).reshape(-1, V, 2)
-        # One camera pose per distinct stamp (tracks share most of theirs), then gathered.
-        slot = {}
-        idx = np.array([[slot.setdefault(o[0], len(slot)) for o in row] for row in views])
-        R_oc, c_o = self._camera_pose(np.array([self.fused_poses[stamp] for stamp in slot]))
-        return R_oc[idx], c_o[idx], xy
+    def _views(self, rows, cols, fs, R_all, c_all):
+        """(R_oc, c_o, xy) of the history slots `cols` (N, V) of tracks `rows` (N)."""
+        N, V = cols.shape
+        rr = np.broadcast_to(rows[:, None], cols.shape)
+        px = self.tracker.hist_uv[rr, cols].astype(float)                  # (N, V, 2)
+        xy = self.intrinsics.undistort_points(px.reshape(-1, 2)).reshape(N, V, 2)
+        slot = np.searchsorted(fs, self.tracker.hist_t[rr, cols])
+        return R_all[slot], c_all[slot], xy
 
     def _forget_unused_poses(self):
         self.landmarks.keep_only(self.tracker.ids)
-        used = {o[0] for h in self.tracker.history.values() for o in h}
+        used = set(np.unique(self.tracker.hist_t[self.tracker.views_used()]).tolist())
         latest = max(self.fused_poses)
         for s in [s for s in self.fused_poses if s not in used and s != latest]:
             del self.fused_poses[s]
+        self._fused_cache = None
 
     # ----- hand-over ---------------------------------------------------------------------
     def get_state(self) -> dict:
@@ -495,6 +508,7 @@ class QuarterEstimator:
         self.tracker.set_state(s['tracker'])
         self.landmarks.set_state(s['landmarks'])
         self.fused_poses = {int(k): np.array(v, float) for k, v in s['fused_poses'].items()}
+        self._fused_cache = None
         self.structure_ms = float(s['structure_ms'])
         self.extract_ms = float(s['extract_ms'])
         self._prefetched = None

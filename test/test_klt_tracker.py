@@ -31,6 +31,10 @@ def shifted(seed, dx, dy):
     return texture(seed, dx, dy)
 
 
+def same_history(a, b) -> bool:
+    return all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ('ids', 'hist_t', 'hist_uv', 'hist_n'))
+
+
 def make(cfg=None, quarter=1):
     cfg = cfg or KLTConfig()
     reg = QuarterRegion.of(quarter, W, H, margin_for(cfg))
@@ -52,7 +56,7 @@ def test_subpixel_shift_is_tracked_to_a_tenth_of_a_pixel():
     print(f'\nKLT: {len(tr.ids)}/{n0} tracks kept, max error {err.max():.3f} px, '
           f'median {np.median(err):.3f} px')
     assert len(tr.ids) > 0.8 * n0
-    assert all(len(tr.history[i]) == 5 for i in tr.ids.tolist())
+    assert all(len(tr.history_of(i)) == 5 for i in tr.ids.tolist())
 
 
 def test_forward_backward_check_rejects_a_changed_patch():
@@ -113,7 +117,7 @@ def test_chunked_parallel_equals_sequential():
                 t.extract(k)
         assert np.array_equal(seq.ids, par.ids)
         assert np.array_equal(seq.pts, par.pts)
-    assert seq.history == par.history
+    assert same_history(seq, par)
     par.close()
 
 
@@ -134,9 +138,28 @@ def test_flow_computed_before_a_drop_tracks_the_rest_identically():
     a.track(1, nxt)
     b.track(1, nxt, flow)
     assert np.array_equal(a.ids, b.ids) and np.array_equal(a.pts, b.pts)
-    assert a.history == b.history and len(a.ids) > 0
+    assert same_history(a, b) and len(a.ids) > 0
     assert not set(gone.tolist()) & set(b.ids.tolist())
     # a flow that lacks tracks (extracted since) is refused rather than mixed in
     assert b.extract(1) > 0
     with pytest.raises(ValueError, match='other tracks'):
         b.track(2, nxt, flow)
+
+
+def test_history_keeps_the_oldest_view_and_the_newest_ones():
+    """max_history views per track: when full, the second-oldest goes (the oldest has the
+    parallax); hand-over carries the history."""
+    tr, reg = make(KLTConfig(max_history=4))
+    tr.track(0, reg.crop(shifted(0, 0, 0)))
+    tr.extract(0)
+    for k in range(1, 7):
+        tr.track(k, reg.crop(shifted(0, 0.3 * k, 0)))
+    i = int(tr.ids[0])
+    assert [t for t, _, _ in tr.history_of(i)] == [0, 4, 5, 6]
+    assert np.array_equal(tr.last_stamps(), np.full(len(tr.ids), 6))
+    assert np.allclose(tr.last_px(), tr.pts)
+    moved, _ = make(KLTConfig(max_history=4))
+    moved.set_state(tr.get_state())
+    assert same_history(tr, moved) and moved.history_of(i) == tr.history_of(i)
+    with pytest.raises(ValueError, match='history'):
+        make()[0].set_state(tr.get_state())          # another max_history

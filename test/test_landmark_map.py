@@ -26,7 +26,7 @@ def test_recovers_points_to_one_percent_of_depth():
     lm = LandmarkMap(parallax_deg=2.0, focal_px=F_PX)
     ok = lm.triangulate(np.arange(200), R, c, xy)
     assert ok.mean() > 0.95
-    err = np.array([np.linalg.norm(lm.points[i] - X[i]) / X[i, 2] for i in np.flatnonzero(ok)])
+    err = np.array([np.linalg.norm(lm.point(i) - X[i]) / X[i, 2] for i in np.flatnonzero(ok)])
     print(f'\ntriangulation: median {100 * np.median(err):.3f} %, max {100 * err.max():.3f} % of depth')
     assert err.max() < 0.01
 
@@ -47,10 +47,10 @@ def test_bad_reprojection_and_behind_camera_are_dropped():
     assert lm.triangulate(np.arange(20), R, c, xy).all()
     obs = xy[:, -1].copy()
     obs[3] += 10 / F_PX                                  # 10 px off: drifted track
-    lm.points[5] = c[5, -1] - 2 * (lm.points[5] - c[5, -1])   # behind the camera
+    lm.X[5] = c[5, -1] - 2 * (lm.point(5) - c[5, -1])   # behind the camera (row 5: ids 0..19)
     bad = lm.check(np.arange(20), R[0, -1], c[0, -1], obs)
     assert set(np.flatnonzero(bad)) == {3, 5}
-    assert 3 not in lm.points and 5 not in lm.points and len(lm) == 18
+    assert 3 not in lm and 5 not in lm and len(lm) == 18
 
 
 def test_covariance_matches_the_scatter_of_repeated_triangulations():
@@ -67,9 +67,9 @@ def test_covariance_matches_the_scatter_of_repeated_triangulations():
         xy = Xc[..., :2] / Xc[..., 2:3] + rng.normal(0, sigma_px / F_PX, (n, 2, 2))
         lm = LandmarkMap(parallax_deg=0.5, focal_px=F_PX, pixel_sigma=sigma_px, max_reproj_px=50)
         assert lm.triangulate(np.arange(n), R, c, xy).all()
-        P = np.array([lm.points[i] for i in range(n)])
+        P = lm.lookup(np.arange(n))[1]
         emp = np.cov(P.T)
-        pred = np.mean([lm.covariances[i] for i in range(n)], axis=0)
+        pred = np.mean(lm.covariances_of(np.arange(n)), axis=0)
         # depth variance to 25 %, the correlation structure to 0.1
         assert abs(pred[2, 2] / emp[2, 2] - 1) < 0.25, (baseline, pred[2, 2], emp[2, 2])
         corr = lambda C: C / np.sqrt(np.outer(np.diag(C), np.diag(C)))
@@ -86,10 +86,29 @@ def test_covariance_matches_the_scatter_of_repeated_triangulations():
     twice = LandmarkMap(parallax_deg=0.5, focal_px=F_PX)
     once.triangulate([0], R, c, xy, view_weights=[[1, 0, 1]])
     twice.triangulate([0], R, c, xy)
-    assert np.trace(once.covariances[0]) > 1.3 * np.trace(twice.covariances[0])
+    assert np.trace(once.covariances_of([0])[0]) > 1.3 * np.trace(twice.covariances_of([0])[0])
     # hand-over carries the covariances; forgetting drops them
     moved = LandmarkMap(parallax_deg=0.5, focal_px=F_PX)
     moved.set_state(once.get_state())
-    assert np.array_equal(moved.covariances_of([0])[0], once.covariances[0])
+    assert np.array_equal(moved.covariances_of([0])[0], once.covariances_of([0])[0])
     moved.forget(0)
-    assert moved.covariances == {}
+    assert len(moved) == 0 and len(moved.C) == 0
+
+
+def test_arrays_stay_sorted_by_id_through_inserts_updates_and_floor_placement():
+    rng = np.random.default_rng(4)
+    X, R, c, xy = views(rng, 10, baseline=1.0, sigma_px=0.0)
+    lm = LandmarkMap(parallax_deg=2.0, focal_px=F_PX)
+    order = np.array([7, 2, 9, 0, 5])
+    lm.triangulate(order, R[:5], c[:5], xy[:5])
+    assert np.array_equal(lm.ids, np.sort(order))
+    assert np.allclose(lm.point(7), X[0], atol=1e-6)
+    # placing on the floor keeps the parallax record of a triangulated landmark and marks it
+    lm.place([7, 11], np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1)))
+    assert np.array_equal(lm.ids, [0, 2, 5, 7, 9, 11])
+    assert lm.floor_count([7, 11, 0]) == 2 and lm.floor_count([3]) == 0
+    assert not np.isnan(lm.parallax[3]) and np.isnan(lm.parallax[5])
+    # a landmark placed but never triangulated is wanted as soon as it has the parallax
+    assert list(lm.want([11, 11], [1.0, 2.5])) == [False, True]
+    lm.keep_only([11, 2, 40])
+    assert np.array_equal(lm.ids, [2, 11])

@@ -83,9 +83,9 @@ def test_tracks_true_pose_after_landmarks_from_fused_poses():
             ok = lm.triangulate(common, R_oc, c_o, xy)
             assert ok.sum() > 60
         vis, z, out = observe(T, T_bc, X, rng, sigma_px, outlier_frac=0.1)
-        has = np.array([i in lm.points for i in range(n)]) & vis
+        has = lm.rows(np.arange(n))[0] & vis
         ids = np.flatnonzero(has)
-        inl = ekf.update(np.array([lm.points[i] for i in ids]), z[ids],
+        inl = ekf.update(lm.lookup(ids)[1], z[ids],
                          (sigma_px / F_PX,) * 2, T_bc, gate_chi2=9.21)
         sizes.append(len(ids))
         outl_total += out[ids].sum()
