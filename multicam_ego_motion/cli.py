@@ -20,6 +20,7 @@ SUBCOMMANDS = {
     'bench': ('multicam_ego_motion.bench', 'measure sequential vs parallel timing'),
     'ablation': ('multicam_ego_motion.ablation', 'fused vs single cameras vs single quarters on a bag'),
     'matrix': ('multicam_ego_motion.accuracy_matrix', 'accuracy matrix: seeds x scenarios through the sequential pipeline'),
+    'profile': ('multicam_ego_motion.profile_table', 'where the CPU goes: stage x kind of work, per frame'),
 }
 
 
