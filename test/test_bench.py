@@ -1,0 +1,20 @@
+"""`ego-motion bench`: the figures computed from given numbers (no run, no timing asserted)."""
+import math
+
+import pytest
+
+from multicam_ego_motion.bench_measures import rate_figures
+
+
+def test_rate_figures_latency_drops_and_real_time_factor():
+    # 4 frames at 10 Hz (bag_s counts one period past the last: 0.4 s); the third got no /odom
+    published = {100: 10.0, 200: 10.1, 300: 10.2, 400: 10.3}
+    received = {100: 10.05, 200: 10.12, 400: 10.38, 999: 11.0}
+    f = rate_figures(published, received, bag_s=0.4, n_frames=4)
+    assert f.frames == 4 and f.dropped == 1
+    assert sorted(f.latencies_ms) == pytest.approx([20.0, 50.0, 80.0])
+    assert f.p50 == pytest.approx(50.0)
+    # first publish 10.0 -> last /odom 10.38, plus one period 0.1
+    assert f.rtf == pytest.approx(0.4 / 0.48)
+    nothing = rate_figures(published, {}, bag_s=0.4, n_frames=4)
+    assert nothing.dropped == 4 and math.isnan(nothing.rtf) and math.isnan(nothing.p99)
