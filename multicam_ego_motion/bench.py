@@ -5,8 +5,10 @@ lockstep at M = 1 and M = 2 workers (wall time per frame, speedup, efficiency, i
 (Ts - Tpar) / Ts; each of these three runs twice and the faster counts: a shared host's
 speed varies by 10-20 % within minutes), the graph in rate mode at the bag's rate on M = 2 (real-time factor,
 latency from the player publishing a frame to /odom arriving, dropped frames, peak memory),
+the camera-rate row (four 640x480 cameras at 30 Hz in rate mode on M = 2: bench_camera_rate),
 and the paper's model (parallel_time_model) fed with the median stage times measured in the
-M = 2 lockstep run, next to the paper's Fig. 6(d). Measured, not asserted.
+M = 2 lockstep run, next to the paper's Fig. 6(d). Measured, not asserted. The VGA bag is
+generated on first use into --camera-rate-bags and reused; --skip-camera-rate leaves it out.
 Writes DIR/bench.md and DIR/model.png.
 """
 import os
@@ -27,6 +29,11 @@ def configure_parser(p):
     p.add_argument('--out', required=True, help='output folder (bench.md, model.png, the runs)')
     p.add_argument('--duration', type=float, help='use only this much of the bag [s]')
     p.add_argument('--params', help='ROS params file (default: the package\'s config/params.yaml)')
+    p.add_argument('--camera-rate-bags', metavar='DIR',
+                   help='cache of the generated VGA bags, made on first use and reused '
+                        '(default: bench_bags beside --out, e.g. out/bench_bags)')
+    p.add_argument('--skip-camera-rate', action='store_true',
+                   help='leave out the camera-rate row (4 x 640x480 at 30 Hz, rate mode)')
 
 
 def stage_medians(statuses, cameras):
@@ -60,6 +67,7 @@ def run(args) -> int:
     if out.exists() and any(out.iterdir()):
         raise UserError(f'output folder {out} is not empty')
     out.mkdir(parents=True, exist_ok=True)
+    bags_folder = Path(args.camera_rate_bags) if args.camera_rate_bags else out.resolve().parent / 'bench_bags'
     reader = Rosbag2Reader(args.bag)
     rig, rig_file = resolve_rig(reader, None)
     if rig_file is None:
@@ -74,9 +82,17 @@ def run(args) -> int:
     rate = rate_figures(d.rate_run.playback.published_at, d.rate_run.odom_received, bag_s, n_frames)
     write_latency_csv(out / 'rate_m2' / 'latency.csv', d.rate_run.playback.published_at,
                       d.rate_run.odom_received)
-    lines = timing_lines(args.bag, n_frames, bag_s, d, rate) + targets_line(d, rate)
+    lines = timing_lines(args.bag, n_frames, bag_s, d, rate)
 
-    # 4. the model, fed with the measured stage times (M = 2 lockstep run)
+    # 4. camera rate (VGA 30 Hz)
+    cam_rate = None
+    if not args.skip_camera_rate:
+        from multicam_ego_motion.bench_camera_rate import camera_rate
+        cam_rate = camera_rate(bags_folder, out, params)
+        lines += [''] + cam_rate.lines
+    lines += targets_line(d, rate)
+
+    # 5. the model, fed with the measured stage times (M = 2 lockstep run)
     statuses = read_statuses(out / 'lockstep_m2' / 'output')
     model, model_lines = model_section(statuses, rig.names)
     lines += model_lines + [f'Bench time: {time.monotonic() - t_bench:.0f} s']

@@ -1,9 +1,11 @@
-"""`ego-motion bench`: the figures computed from given numbers (no run, no timing asserted)."""
+"""`ego-motion bench`: the figures computed from given numbers (no run, no timing asserted),
+and the options that leave out its long parts."""
 import math
 
 import pytest
 
 from multicam_ego_motion.bench_measures import rate_figures
+from conftest import run_cli
 
 
 def test_rate_figures_latency_drops_and_real_time_factor():
@@ -18,3 +20,10 @@ def test_rate_figures_latency_drops_and_real_time_factor():
     assert f.rtf == pytest.approx(0.4 / 0.48)
     nothing = rate_figures(published, {}, bag_s=0.4, n_frames=4)
     assert nothing.dropped == 4 and math.isnan(nothing.rtf) and math.isnan(nothing.p99)
+
+
+def test_bench_help_lists_the_camera_rate_options():
+    r = run_cli('bench', '--help')
+    assert r.returncode == 0, r.stderr
+    for opt in ('--skip-camera-rate', '--camera-rate-bags'):
+        assert opt in r.stdout
