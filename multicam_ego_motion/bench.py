@@ -6,9 +6,11 @@ lockstep at M = 1 and M = 2 workers (wall time per frame, speedup, efficiency, i
 speed varies by 10-20 % within minutes), the graph in rate mode at the bag's rate on M = 2 (real-time factor,
 latency from the player publishing a frame to /odom arriving, dropped frames, peak memory),
 the camera-rate row (four 640x480 cameras at 30 Hz in rate mode on M = 2: bench_camera_rate),
-and the paper's model (parallel_time_model) fed with the median stage times measured in the
-M = 2 lockstep run, next to the paper's Fig. 6(d). Measured, not asserted. The VGA bag is
-generated on first use into --camera-rate-bags and reused; --skip-camera-rate leaves it out.
+accuracy live vs offline at 15 and 30 Hz (bench_live_offline), and the paper's model
+(parallel_time_model) fed with the median stage times measured in the M = 2 lockstep run,
+next to the paper's Fig. 6(d). Measured, not asserted. The VGA bags are generated on first
+use into --camera-rate-bags and reused; --skip-camera-rate and --skip-live-vs-offline leave
+out the long parts.
 Writes DIR/bench.md and DIR/model.png.
 """
 import os
@@ -30,10 +32,12 @@ def configure_parser(p):
     p.add_argument('--duration', type=float, help='use only this much of the bag [s]')
     p.add_argument('--params', help='ROS params file (default: the package\'s config/params.yaml)')
     p.add_argument('--camera-rate-bags', metavar='DIR',
-                   help='cache of the generated VGA bags, made on first use and reused '
+                   help='cache of the generated VGA bags (15 and 30 Hz), made on first use and reused '
                         '(default: bench_bags beside --out, e.g. out/bench_bags)')
     p.add_argument('--skip-camera-rate', action='store_true',
                    help='leave out the camera-rate row (4 x 640x480 at 30 Hz, rate mode)')
+    p.add_argument('--skip-live-vs-offline', action='store_true',
+                   help='leave out accuracy live vs offline (VGA at 15 and 30 Hz, lockstep and rate mode)')
 
 
 def stage_medians(statuses, cameras):
@@ -84,15 +88,21 @@ def run(args) -> int:
                       d.rate_run.odom_received)
     lines = timing_lines(args.bag, n_frames, bag_s, d, rate)
 
-    # 4. camera rate (VGA 30 Hz)
-    cam_rate = None
+    # 4. camera rate (VGA 30 Hz) and 5. accuracy live vs offline (VGA 15 and 30 Hz)
+    cam_rate = live_off = None
     if not args.skip_camera_rate:
         from multicam_ego_motion.bench_camera_rate import camera_rate
         cam_rate = camera_rate(bags_folder, out, params)
         lines += [''] + cam_rate.lines
+    if not args.skip_live_vs_offline:
+        from multicam_ego_motion.bench_live_offline import live_vs_offline
+        reuse = {30.0: (cam_rate.run_dir, cam_rate.cpu_per_image_ms)} if cam_rate else None
+        live_off = live_vs_offline(bags_folder, out, params, live_runs=reuse)
+        lines += ['', 'Accuracy live (rate mode) vs offline (lockstep), against the bag\'s ground truth; '
+                  'apart = |live - offline| / offline:', ''] + live_off.lines
     lines += targets_line(d, rate)
 
-    # 5. the model, fed with the measured stage times (M = 2 lockstep run)
+    # 6. the model, fed with the measured stage times (M = 2 lockstep run)
     statuses = read_statuses(out / 'lockstep_m2' / 'output')
     model, model_lines = model_section(statuses, rig.names)
     lines += model_lines + [f'Bench time: {time.monotonic() - t_bench:.0f} s']

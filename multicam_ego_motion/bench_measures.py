@@ -2,14 +2,19 @@
 
 `graph_run` runs the graph over a bag recording only what the bench reads (/odom and
 /diagnostics); the functions below turn a run into figures: the rate-mode real-time factor,
-latency and drops (`rate_figures`) and the recorded /diagnostics (`read_statuses`). The
-computations take plain values, so a test can feed them small inputs.
+latency and drops (`rate_figures`), the recorded /diagnostics (`read_statuses`), the
+accuracy against the bag's ground truth (`score_run`) and how far two such scores are apart
+(`relative_difference`). The computations take plain values, so a test can feed them small
+inputs.
 """
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
+
+GROUND_TRUTH_TOPIC = '/ground_truth/odom'
 
 
 def graph_run(bag, out: Path, rig, rig_file, params, workers: int, lockstep: bool, duration=None):
@@ -93,6 +98,24 @@ def read_statuses(output_bag) -> List[Tuple[str, Dict[str, str]]]:
             for st in reader.deserialize(raw, c.msgtype).status:
                 out.append((st.name, {kv.key: kv.value for kv in st.values}))
     return out
+
+
+def score_run(run_out: Path, bag, gt_topic: str = GROUND_TRUTH_TOPIC) -> dict:
+    """The run's recorded /odom against the bag's ground truth (also writes run_out/odometry.tum)."""
+    from multicam_ego_motion.evaluation.evaluate import evaluate_trajectories
+    from multicam_ego_motion.evaluation.trajectory_io import read_bag_topic, save_tum
+    est = read_bag_topic(Path(run_out) / 'output', '/odom')
+    save_tum(est, Path(run_out) / 'odometry.tum')
+    metrics = evaluate_trajectories(read_bag_topic(bag, gt_topic), est)
+    metrics['odom_poses'] = len(est)
+    return metrics
+
+
+def relative_difference(live: float, offline: float) -> float:
+    """|live - offline| / |offline| (NaN when offline is 0 or either is not a number)."""
+    if not (math.isfinite(live) and math.isfinite(offline)) or offline == 0:
+        return float('nan')
+    return abs(live - offline) / abs(offline)
 
 
 def per_frame_ms(seconds: float, frames: int, per: Optional[int] = None) -> float:

@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from multicam_ego_motion.bench_measures import rate_figures
+from multicam_ego_motion.bench_measures import rate_figures, relative_difference
 from conftest import run_cli
 
 
@@ -22,8 +22,15 @@ def test_rate_figures_latency_drops_and_real_time_factor():
     assert nothing.dropped == 4 and math.isnan(nothing.rtf) and math.isnan(nothing.p99)
 
 
-def test_bench_help_lists_the_camera_rate_options():
+def test_relative_difference_live_vs_offline():
+    assert relative_difference(1.1, 1.0) == pytest.approx(0.1)
+    assert relative_difference(0.9, 1.0) == pytest.approx(0.1)
+    assert math.isnan(relative_difference(1.0, 0.0))
+    assert math.isnan(relative_difference(float('nan'), 1.0))
+
+
+def test_bench_help_lists_the_skip_options():
     r = run_cli('bench', '--help')
     assert r.returncode == 0, r.stderr
-    for opt in ('--skip-camera-rate', '--camera-rate-bags'):
+    for opt in ('--skip-camera-rate', '--skip-live-vs-offline', '--camera-rate-bags'):
         assert opt in r.stdout
