@@ -6,11 +6,11 @@ lockstep at M = 1 and M = 2 workers (wall time per frame, speedup, efficiency, i
 speed varies by 10-20 % within minutes), the graph in rate mode at the bag's rate on M = 2 (real-time factor,
 latency from the player publishing a frame to /odom arriving, dropped frames, peak memory),
 the camera-rate row (four 640x480 cameras at 30 Hz in rate mode on M = 2: bench_camera_rate),
-accuracy live vs offline at 15 and 30 Hz (bench_live_offline), and the paper's model
-(parallel_time_model) fed with the median stage times measured in the M = 2 lockstep run,
-next to the paper's Fig. 6(d). Measured, not asserted. The VGA bags are generated on first
-use into --camera-rate-bags and reused; --skip-camera-rate and --skip-live-vs-offline leave
-out the long parts.
+accuracy live vs offline at 15 and 30 Hz (bench_live_offline), the track CPU per tracked
+point, and the paper's model (parallel_time_model) fed with the median stage times measured
+in the M = 2 lockstep run, next to the paper's Fig. 6(d). Measured, not asserted. The VGA
+bags are generated on first use into --camera-rate-bags and reused; --skip-camera-rate and
+--skip-live-vs-offline leave out the long parts.
 Writes DIR/bench.md and DIR/model.png.
 """
 import os
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from multicam_ego_motion.bench_measures import (graph_run, per_frame_ms, rate_figures, read_statuses,
-                                                write_latency_csv)
+                                                track_cost, write_latency_csv)
 from multicam_ego_motion.errors import UserError
 
 MODEL_WORKERS = (2, 4, 6, 8, 10, 14, 16, 24, 48)
@@ -100,10 +100,20 @@ def run(args) -> int:
         live_off = live_vs_offline(bags_folder, out, params, live_runs=reuse)
         lines += ['', 'Accuracy live (rate mode) vs offline (lockstep), against the bag\'s ground truth; '
                   'apart = |live - offline| / offline:', ''] + live_off.lines
+
+    # 6. track CPU per tracked point (lockstep, M = 2)
+    statuses = read_statuses(out / 'lockstep_m2' / 'output')
+    runs = [('default bag', statuses)]
+    if live_off:
+        runs += [(f'VGA {r:g} Hz', read_statuses(p / 'output')) for r, p in live_off.lockstep_runs.items()]
+    lines += ['', '| track CPU per tracked point, lockstep M = 2 (sum of track_ms / sum of features, '
+              'quarters x frames) | [us] | tracked points per quarter and frame |', '|---|---:|---:|']
+    for name, st in runs:
+        c = track_cost(st)
+        lines.append(f'| {name} | {c.us_per_point:.1f} | {c.points_per_report:.0f} |')
     lines += targets_line(d, rate)
 
-    # 6. the model, fed with the measured stage times (M = 2 lockstep run)
-    statuses = read_statuses(out / 'lockstep_m2' / 'output')
+    # 7. the model, fed with the measured stage times (M = 2 lockstep run)
     model, model_lines = model_section(statuses, rig.names)
     lines += model_lines + [f'Bench time: {time.monotonic() - t_bench:.0f} s']
     text = '\n'.join(l for l in lines if l is not None)

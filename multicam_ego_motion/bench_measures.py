@@ -2,15 +2,15 @@
 
 `graph_run` runs the graph over a bag recording only what the bench reads (/odom and
 /diagnostics); the functions below turn a run into figures: the rate-mode real-time factor,
-latency and drops (`rate_figures`), the recorded /diagnostics (`read_statuses`), the
-accuracy against the bag's ground truth (`score_run`) and how far two such scores are apart
-(`relative_difference`). The computations take plain values, so a test can feed them small
-inputs.
+latency and drops (`rate_figures`), the track CPU per tracked point from /diagnostics
+(`track_cost`), the accuracy against the bag's ground truth (`score_run`) and how far
+two such scores are apart (`relative_difference`). The computations take plain values, so a
+test can feed them small inputs.
 """
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, Iterable, List, Optional, Tuple
 
 import numpy as np
 
@@ -98,6 +98,38 @@ def read_statuses(output_bag) -> List[Tuple[str, Dict[str, str]]]:
             for st in reader.deserialize(raw, c.msgtype).status:
                 out.append((st.name, {kv.key: kv.value for kv in st.values}))
     return out
+
+
+def is_quarter(name: str) -> bool:
+    """ego_motion/<camera>/q<l>: a quarter node's status."""
+    parts = name.split('/')
+    return len(parts) == 3 and parts[0] == 'ego_motion' and parts[2][:1] == 'q' and parts[2][1:].isdigit()
+
+
+@dataclass
+class TrackCost:
+    track_ms: float        # the quarters' track_ms, summed over quarters and frames
+    points: int            # their `features` (tracked points), summed the same way
+    reports: int           # quarter statuses that had both
+
+    @property
+    def us_per_point(self) -> float:
+        return self.track_ms * 1e3 / self.points if self.points else float('nan')
+
+    @property
+    def points_per_report(self) -> float:
+        return self.points / self.reports if self.reports else float('nan')
+
+
+def track_cost(statuses: Iterable[Tuple[str, Dict[str, str]]]) -> TrackCost:
+    """Track CPU per tracked point from the quarters' /diagnostics (track_ms, features)."""
+    track_ms, points, reports = 0.0, 0, 0
+    for name, values in statuses:
+        if is_quarter(name) and 'track_ms' in values and 'features' in values:
+            track_ms += float(values['track_ms'])
+            points += int(values['features'])
+            reports += 1
+    return TrackCost(track_ms, points, reports)
 
 
 def score_run(run_out: Path, bag, gt_topic: str = GROUND_TRUTH_TOPIC) -> dict:

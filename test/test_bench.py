@@ -4,8 +4,28 @@ import math
 
 import pytest
 
-from multicam_ego_motion.bench_measures import rate_figures, relative_difference
+from multicam_ego_motion.bench_measures import rate_figures, relative_difference, track_cost
 from conftest import run_cli
+
+
+def quarter(cam, q, features, track_ms, **more):
+    return f'ego_motion/{cam}/q{q}', {'features': str(features), 'track_ms': f'{track_ms:.3f}',
+                                      'state': 'tracking', **more}
+
+
+def test_track_cost_sums_over_quarters_and_frames():
+    statuses = [quarter('front', 1, 100, 1.0), quarter('front', 2, 50, 2.0),     # frame 1
+                quarter('front', 1, 150, 3.0), quarter('rear', 4, 0, 0.5),        # frame 2
+                # not quarters: arbiters report other stage times, never counted
+                ('ego_motion/front/arbiter', {'arbiter_ms': '9.0', 'features': '999'}),
+                ('ego_motion/general_arbiter', {'arbiter_ms': '9.0'}),
+                # a quarter without a tracking report (before its CameraInfo) is skipped
+                ('ego_motion/left/q3', {'state': 'waiting'})]
+    c = track_cost(statuses)
+    assert (c.track_ms, c.points, c.reports) == (pytest.approx(6.5), 300, 4)
+    assert c.us_per_point == pytest.approx(6.5e3 / 300)
+    assert c.points_per_report == pytest.approx(75)
+    assert math.isnan(track_cost([('ego_motion/front/arbiter', {})]).us_per_point)
 
 
 def test_rate_figures_latency_drops_and_real_time_factor():
