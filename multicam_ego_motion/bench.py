@@ -5,17 +5,23 @@ lockstep at M = 1 and M = 2 workers (wall time per frame, speedup, efficiency, i
 (Ts - Tpar) / Ts; each of these three runs twice and the faster counts: a shared host's
 speed varies by 10-20 % within minutes), the graph in rate mode at the bag's rate on M = 2 (real-time factor,
 latency from the player publishing a frame to /odom arriving, dropped frames, peak memory),
-and the paper's model (parallel_time_model) fed with the median stage times measured in the
-M = 2 lockstep run, next to the paper's Fig. 6(d). Measured, not asserted.
+the camera-rate row (four 640x480 cameras at 30 Hz in rate mode on M = 2: bench_camera_rate),
+accuracy live vs offline at 15 and 30 Hz (bench_live_offline), the track CPU per tracked
+point, the targets, one row each with met or missed (bench_targets), and the paper's model
+(parallel_time_model) fed with the median stage times measured in the M = 2 lockstep run,
+next to the paper's Fig. 6(d). Measured, not asserted. The VGA bags are generated on first
+use into --camera-rate-bags and reused; --skip-camera-rate and --skip-live-vs-offline leave
+out the long parts.
 Writes DIR/bench.md and DIR/model.png.
 """
 import os
 import statistics
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
+from multicam_ego_motion.bench_measures import (graph_run, per_frame_ms, rate_figures, read_statuses,
+                                                track_cost, write_latency_csv)
 from multicam_ego_motion.errors import UserError
 
 MODEL_WORKERS = (2, 4, 6, 8, 10, 14, 16, 24, 48)
@@ -26,21 +32,24 @@ def configure_parser(p):
     p.add_argument('--out', required=True, help='output folder (bench.md, model.png, the runs)')
     p.add_argument('--duration', type=float, help='use only this much of the bag [s]')
     p.add_argument('--params', help='ROS params file (default: the package\'s config/params.yaml)')
+    p.add_argument('--camera-rate-bags', metavar='DIR',
+                   help='cache of the generated VGA bags (15 and 30 Hz), made on first use and reused '
+                        '(default: bench_bags beside --out, e.g. out/bench_bags)')
+    p.add_argument('--skip-camera-rate', action='store_true',
+                   help='leave out the camera-rate row (4 x 640x480 at 30 Hz, rate mode)')
+    p.add_argument('--skip-live-vs-offline', action='store_true',
+                   help='leave out accuracy live vs offline (VGA at 15 and 30 Hz, lockstep and rate mode)')
 
 
-def stage_medians(output_bag, cameras):
-    """Median stage times per quarter, camera arbiter and general arbiter from /diagnostics."""
-    from rosbags.highlevel import AnyReader
+def stage_medians(statuses, cameras):
+    """Median stage times per quarter, camera arbiter and general arbiter from /diagnostics
+    (bench_measures.read_statuses)."""
     from multicam_ego_motion.coordinator.parallel_time_model import STAGES
     per = {}
-    with AnyReader([Path(output_bag)]) as reader:
-        conns = [c for c in reader.connections if c.topic == '/diagnostics']
-        for c, _, raw in reader.messages(connections=conns):
-            for st in reader.deserialize(raw, c.msgtype).status:
-                vals = {kv.key: kv.value for kv in st.values}
-                for k, v in vals.items():
-                    if k.endswith('_ms'):
-                        per.setdefault((st.name, k), []).append(float(v))
+    for name, vals in statuses:
+        for k, v in vals.items():
+            if k.endswith('_ms'):
+                per.setdefault((name, k), []).append(float(v))
 
     def med(name, key):
         xs = per.get((name, key))
@@ -51,24 +60,11 @@ def stage_medians(output_bag, cameras):
     return stage_ms, arbiter_ms, med('ego_motion/general_arbiter', 'arbiter_ms')
 
 
-def _graph(bag, out, rig, rig_file, params, workers, lockstep, duration):
-    from multicam_ego_motion.replay import run_graph
-    print(f'bench: graph, M = {workers}, {"lockstep" if lockstep else "rate 1.0"} ...', flush=True)
-    g = run_graph(bag, out, rig, rig_file, params, workers, lockstep=lockstep, rate=1.0,
-                  duration=duration, rebalance=False, logger=None,
-                  # The bench times the graph, not the recorder: record only what it reads.
-                  record_topics=['/odom', '/diagnostics'])
-    frames = len(g.playback.published_at)
-    return g, frames, g.wall_s / max(frames, 1)
-
-
 def run(args) -> int:
     from multicam_ego_motion import dds_transport, ros_domain
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
-    from multicam_ego_motion.coordinator.parallel_time_model import PAPER_IMPROVEMENT_PCT, table
+    from multicam_ego_motion.bench_measures import bag_window
     from multicam_ego_motion.replay import DEFAULT_PARAMS, resolve_rig
-    from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
-    from multicam_ego_motion.sequential_pipeline import run_sequential
 
     ros_domain.isolate()
     dds_transport.use_graph_profile()
@@ -76,6 +72,7 @@ def run(args) -> int:
     if out.exists() and any(out.iterdir()):
         raise UserError(f'output folder {out} is not empty')
     out.mkdir(parents=True, exist_ok=True)
+    bags_folder = Path(args.camera_rate_bags) if args.camera_rate_bags else out.resolve().parent / 'bench_bags'
     reader = Rosbag2Reader(args.bag)
     rig, rig_file = resolve_rig(reader, None)
     if rig_file is None:
@@ -83,14 +80,91 @@ def run(args) -> int:
         rig.save(rig_file)
     params = Path(args.params) if args.params else DEFAULT_PARAMS
     t_bench = time.monotonic()
+    n_frames, bag_s = bag_window(args.bag, args.duration)
 
-    # 1. sequential baseline, same window as the graph runs
-    from multicam_ego_motion.bag.player import BagPlayer, PlayOptions
-    window = [f for f in BagPlayer(args.bag, PlayOptions(lockstep=True, duration_s=args.duration)).frames()
-              if f.is_trigger]
-    n_frames = len(window)
-    bag_s = (window[-1].log_time_ns - window[0].log_time_ns) / 1e9 + (
-        (window[1].log_time_ns - window[0].log_time_ns) / 1e9 if n_frames > 1 else 0.0)
+    # 1.-3. the default bag: sequential, lockstep M = 1 and 2, rate mode M = 2
+    d = default_bag_runs(args, out, rig, rig_file, params, n_frames)
+    rate = rate_figures(d.rate_run.playback.published_at, d.rate_run.odom_received, bag_s, n_frames)
+    write_latency_csv(out / 'rate_m2' / 'latency.csv', d.rate_run.playback.published_at,
+                      d.rate_run.odom_received)
+    lines = timing_lines(args.bag, n_frames, bag_s, d, rate)
+
+    # 4. camera rate (VGA 30 Hz) and 5. accuracy live vs offline (VGA 15 and 30 Hz)
+    cam_rate = live_off = None
+    if not args.skip_camera_rate:
+        from multicam_ego_motion.bench_camera_rate import camera_rate
+        cam_rate = camera_rate(bags_folder, out, params)
+        lines += [''] + cam_rate.lines
+    if not args.skip_live_vs_offline:
+        from multicam_ego_motion.bench_live_offline import live_vs_offline
+        reuse = {30.0: (cam_rate.run_dir, cam_rate.cpu_per_image_ms)} if cam_rate else None
+        live_off = live_vs_offline(bags_folder, out, params, live_runs=reuse)
+        lines += ['', 'Accuracy live (rate mode) vs offline (lockstep), against the bag\'s ground truth; '
+                  'apart = |live - offline| / offline:', ''] + live_off.lines
+
+    # 6. track CPU per tracked point (lockstep, M = 2)
+    statuses = read_statuses(out / 'lockstep_m2' / 'output')
+    runs = [('default bag', statuses)]
+    if live_off:
+        runs += [(f'VGA {r:g} Hz', read_statuses(p / 'output')) for r, p in live_off.lockstep_runs.items()]
+    lines += ['', '| track CPU per tracked point, lockstep M = 2 (sum of track_ms / sum of features, '
+              'quarters x frames) | [us] | tracked points per quarter and frame |', '|---|---:|---:|']
+    for name, st in runs:
+        c = track_cost(st)
+        lines.append(f'| {name} | {c.us_per_point:.1f} | {c.points_per_report:.0f} |')
+
+    # 7. the targets
+    from multicam_ego_motion import bench_targets
+    targets = bench_targets.bench_targets(
+        seq_ms=d.Ts, seq_cpu_ms=d.Ts_cpu, m1_ms=d.best[1][0], m2_ms=d.best[2][0],
+        graph_cpu_m2_ms=d.best[2][2], replay_cpu_m2_ms=d.best[2][3], speedup_bound=d.ceiling,
+        default_rate=rate, camera_rate=cam_rate.figures if cam_rate else None,
+        live_offline=live_off.relative if live_off else None,
+        skipped_camera_rate='--skip-camera-rate', skipped_live_offline='--skip-live-vs-offline')
+    lines += ['', '## Targets', ''] + bench_targets.table(targets)
+
+    # 8. the model, fed with the measured stage times (M = 2 lockstep run)
+    model, model_lines = model_section(statuses, rig.names)
+    lines += model_lines + [f'Bench time: {time.monotonic() - t_bench:.0f} s']
+    text = '\n'.join(l for l in lines if l is not None)
+    print(text)
+    (out / 'bench.md').write_text(text + '\n')
+    _plot(model, d.Ts, d.best[2][0], out / 'model.png')
+    return 0
+
+
+@dataclass
+class DefaultBagRuns:
+    seq_runs: list           # (wall, CPU) ms per frame of each sequential run
+    lockstep_runs: dict      # M -> [(wall ms per frame, frames, graph CPU ms, player... CPU ms)]
+    rate_run: object         # replay.GraphRun, rate mode, M = 2
+    cores: int
+
+    @property
+    def Ts(self):
+        return min(self.seq_runs)[0]
+
+    @property
+    def Ts_cpu(self):
+        return min(self.seq_runs)[1]
+
+    @property
+    def best(self):
+        return {M: min(runs) for M, runs in self.lockstep_runs.items()}    # the faster run of each M
+
+    @property
+    def ceiling(self):
+        # What the CPU time alone allows, however well the work overlaps: the graph's CPU per
+        # frame (workers, and the player/recorder/coordinator sharing the same cores) spread
+        # over min(M, cores). Where a target is beyond this, no schedule reaches it here.
+        _, _, cpu2, cpu_r2 = self.best[2]
+        return self.Ts / ((cpu2 + cpu_r2) / min(2, self.cores))
+
+
+def default_bag_runs(args, out, rig, rig_file, params, n_frames) -> DefaultBagRuns:
+    from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
+    from multicam_ego_motion.sequential_pipeline import run_sequential
+
     def sequential():
         print(f'bench: sequential baseline ({n_frames} frames) ...', flush=True)
         import cv2
@@ -109,46 +183,30 @@ def run(args) -> int:
     # can include seconds of other work (seen: a baseline of 199 ms per frame of wall on 155
     # ms of CPU, which flattered the speedup to 2.1; and 129 vs 159 ms for the same work).
     seq_runs = [sequential()]
-    # 2. the graph, lockstep M = 1, 2; 3. rate mode M = 2
-    rows = [None]                        # the sequential row, once both baselines ran
-    g2 = None
     lockstep_runs = {1: [], 2: []}
 
     def lockstep(M, suffix=''):
-        g, frames, per = _graph(args.bag, out / f'lockstep_m{M}{suffix}', rig, rig_file, params, M, True,
-                                args.duration)
-        lockstep_runs[M].append((per * 1e3, frames, g.cpu_workers_s / max(frames, 1) * 1e3,
-                                 g.cpu_replay_s / max(frames, 1) * 1e3))
-        return g
+        g, frames, per = graph_run(args.bag, out / f'lockstep_m{M}{suffix}', rig, rig_file, params, M, True,
+                                   args.duration)
+        lockstep_runs[M].append((per * 1e3, frames, per_frame_ms(g.cpu_workers_s, frames),
+                                 per_frame_ms(g.cpu_replay_s, frames)))
     lockstep(1)
-    g2 = lockstep(2)
-    gr, frames_r, _ = _graph(args.bag, out / 'rate_m2', rig, rig_file, params, 2, False, args.duration)
-    lat = [(gr.odom_received[s] - t) * 1e3 for s, t in gr.playback.published_at.items() if s in gr.odom_received]
-    dropped = frames_r - len(lat)
-    # Per frame, for finding which frames make the p99 (start-up, a rebalance, a snapshot).
-    with open(out / 'rate_m2' / 'latency.csv', 'w') as f:
-        f.write('stamp_ns,latency_ms\n')
-        for s_ns, t in sorted(gr.playback.published_at.items()):
-            if s_ns in gr.odom_received:
-                f.write(f'{s_ns},{(gr.odom_received[s_ns] - t) * 1e3:.3f}\n')
-    # Real-time factor over the frames: from the first frame's publish to the last /odom
-    # (plus one period, as bag_s counts one): the player's pre-roll (discovery) is not
-    # processing, and a graph that falls behind delivers its last /odom late.
-    done = [gr.odom_received[s] for s in gr.playback.published_at if s in gr.odom_received]
-    wall_frames = (max(done) - min(gr.playback.published_at.values()) + bag_s / max(n_frames, 1)
-                   if done else float('nan'))
-    rtf = bag_s / wall_frames if wall_frames > 0 else float('nan')
+    lockstep(2)
+    gr, _, _ = graph_run(args.bag, out / 'rate_m2', rig, rig_file, params, 2, False, args.duration)
     lockstep(1, '_again')
     lockstep(2, '_again')
     seq_runs.append(sequential())
-    Ts, Ts_cpu = min(seq_runs)
-    rows[0] = ('sequential (1 process, no ROS)', Ts, 1, None, Ts_cpu, 0.0)
-    best = {M: min(runs) for M, runs in lockstep_runs.items()}    # the faster run of each M
+    return DefaultBagRuns(seq_runs, lockstep_runs, gr, os.cpu_count() or 1)
+
+
+def timing_lines(bag, n_frames, bag_s, d: DefaultBagRuns, rate) -> list:
+    """The timing table, the default bag's rate-mode row and the CPU bounds."""
+    Ts, Ts_cpu, best, gr = d.Ts, d.Ts_cpu, d.best, d.rate_run
+    rows = [('sequential (1 process, no ROS)', Ts, 1, None, Ts_cpu, 0.0)]
     for M in (1, 2):
         per_ms, frames, cpu, cpu_replay = best[M]
         rows.append((f'graph, lockstep, M = {M}', per_ms, M, frames, cpu, cpu_replay))
-
-    lines = [f'# ego-motion bench: {args.bag}, {n_frames} frames ({bag_s:.1f} s of bag), '
+    lines = [f'# ego-motion bench: {bag}, {n_frames} frames ({bag_s:.1f} s of bag), '
              f'{os.cpu_count()} CPUs', '',
              '| configuration | wall per frame [ms] | speedup vs sequential | efficiency | improvement [%] '
              '| CPU per frame: graph [ms] | CPU per frame: player, recorder, coordinator [ms] |',
@@ -160,62 +218,51 @@ def run(args) -> int:
     lines += ['', 'Each configuration above ran twice (sequential first and last, the graph '
               'before and after the rate-mode run); the faster counts. Wall per frame [ms]: '
               + '; '.join(f'{name} ' + ' / '.join(f'{r[0]:.1f}' for r in runs) for name, runs in (
-                  ('sequential', seq_runs), ('M = 1', lockstep_runs[1]), ('M = 2', lockstep_runs[2])))
+                  ('sequential', d.seq_runs), ('M = 1', d.lockstep_runs[1]), ('M = 2', d.lockstep_runs[2])))
               + '.',
               f'Load average during the bench: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs '
               '(wall times include whatever else runs; CPU times do not).']
+    frames_r = rate.frames
     lines += ['', '| rate mode, M = 2, bag rate | value |', '|---|---:|',
-              f'| real-time factor (bag s / wall s, first frame published -> last /odom) | {rtf:.2f} |',
-              f'| latency image -> /odom p50 [ms] | {np.percentile(lat, 50):.1f} |' if lat else '| latency | n/a |',
-              f'| latency image -> /odom p99 [ms] | {np.percentile(lat, 99):.1f} |' if lat else '',
-              f'| dropped frames (no /odom) | {dropped} of {frames_r} |',
-              f'| peak memory, workers + coordinator [MB] | {gr.peak_rss_kb / 1024:.0f} |']
-    g1_ms, g2_ms = rows[1][1], rows[2][1]
-    lines += [f'| rate mode, M = 2: CPU per frame, graph / player+recorder+coordinator [ms] '
-              f'| {gr.cpu_workers_s / max(frames_r, 1) * 1e3:.1f} / {gr.cpu_replay_s / max(frames_r, 1) * 1e3:.1f} |']
-    # What the CPU time alone allows, however well the work overlaps: the graph's CPU per
-    # frame (workers, and the player/recorder/coordinator sharing the same cores) spread over
-    # min(M, cores). Where a target is beyond these, no schedule reaches it on this machine.
-    cores = os.cpu_count() or 1
+              f'| real-time factor (bag s / wall s, first frame published -> last /odom) | {rate.rtf:.2f} |',
+              f'| latency image -> /odom p50 [ms] | {rate.p50:.1f} |',
+              f'| latency image -> /odom p99 [ms] | {rate.p99:.1f} |',
+              f'| dropped frames (no /odom) | {rate.dropped} of {frames_r} |',
+              f'| peak memory, workers + coordinator [MB] | {gr.peak_rss_kb / 1024:.0f} |',
+              f'| rate mode, M = 2: CPU per frame, graph / player+recorder+coordinator [ms] '
+              f'| {per_frame_ms(gr.cpu_workers_s, frames_r):.1f} / {per_frame_ms(gr.cpu_replay_s, frames_r):.1f} |']
     _, _, cpu2, cpu_r2 = best[2]
-    ceiling = Ts / ((cpu2 + cpu_r2) / min(2, cores))
+    cores = d.cores
     # (from lockstep, where every frame is processed: an overloaded rate-mode run drops
     # frames, and its CPU per frame only says that the cores were full)
     cores_needed = (cpu2 + cpu_r2) * (n_frames / bag_s) / 1e3 if bag_s > 0 else float('nan')
     lines += ['', '| bounds from the CPU time (any schedule, perfect overlap) | value |', '|---|---:|',
               f'| speedup at M = 2 the CPU per frame allows: Ts / ((graph + player...) CPU / '
-              f'{min(2, cores)} cores) | {ceiling:.2f} |',
+              f'{min(2, cores)} cores) | {d.ceiling:.2f} |',
               f'| sequential CPU / graph CPU (with player...) per frame at M = 2: what transport leaves '
               f'| {Ts_cpu / (cpu2 + cpu_r2):.2f} |',
               f'| cores needed, at least, for real time at the bag\'s {n_frames / bag_s:.1f} Hz '
               f'(CPU per frame at M = 2 x rate) | {cores_needed:.2f} of {cores} |']
-    lines += ['', 'Targets: speedup at M = 2 >= 1.8: '
-              f'{Ts / g2_ms:.2f} ({"met" if Ts / g2_ms >= 1.8 else "missed"}); graph at M = 1 <= 1.25 x '
-              f'sequential: {g1_ms / Ts:.2f} x ({"met" if g1_ms / Ts <= 1.25 else "missed"}); real time with '
-              f'p99 latency <= 100 ms: RTF {rtf:.2f}, p99 '
-              f'{np.percentile(lat, 99) if lat else float("nan"):.0f} ms '
-              f'({"met" if lat and rtf >= 0.98 and np.percentile(lat, 99) <= 100 and dropped == 0 else "missed"})']
+    return lines
 
-    # 4. the model, fed with the measured stage times (M = 2 lockstep run)
-    stage_ms, arb_ms, ga_ms = stage_medians(out / 'lockstep_m2' / 'output', rig.names)
+
+def model_section(statuses, cameras):
+    """The paper's model fed with the median stage times of the M = 2 lockstep run."""
+    from multicam_ego_motion.coordinator.parallel_time_model import PAPER_IMPROVEMENT_PCT, table
+    stage_ms, arb_ms, ga_ms = stage_medians(statuses, cameras)
     model = table(stage_ms, MODEL_WORKERS, arbiter_ms=arb_ms, general_arbiter_ms=ga_ms)
-    lines += ['', 'Model (paper eq. 1-4) fed with the median stage times measured at M = 2 '
-              '(no communication cost):', '',
-              '| M | predicted T_par [ms] | speedup | efficiency | improvement [%] | paper Fig. 6(d) [%] |',
-              '|---:|---:|---:|---:|---:|---:|']
+    lines = ['', 'Model (paper eq. 1-4) fed with the median stage times measured at M = 2 '
+             '(no communication cost):', '',
+             '| M | predicted T_par [ms] | speedup | efficiency | improvement [%] | paper Fig. 6(d) [%] |',
+             '|---:|---:|---:|---:|---:|---:|']
     for r in model:
         lines.append(f'| {r["M"]} | {r["T_par_ms"]:.1f} | {r["speedup"]:.2f} | {r["efficiency"]:.2f} | '
                      f'{r["improvement_pct"]:.1f} | {PAPER_IMPROVEMENT_PCT.get(r["M"], float("nan")):.1f} |')
-    stage_tot = {s: sum(q[s] for qs in stage_ms.values() for q in qs) for s in stage_ms[rig.names[0]][0]}
+    stage_tot = {s: sum(q[s] for qs in stage_ms.values() for q in qs) for s in stage_ms[cameras[0]][0]}
     lines += ['', 'Measured medians summed over the 16 quarters [ms]: '
               + ', '.join(f'{k} {v:.1f}' for k, v in stage_tot.items())
-              + f'; camera arbiters {sum(arb_ms.values()):.1f}; general arbiter {ga_ms:.1f}',
-              f'Bench time: {time.monotonic() - t_bench:.0f} s']
-    text = '\n'.join(l for l in lines if l is not None)
-    print(text)
-    (out / 'bench.md').write_text(text + '\n')
-    _plot(model, Ts, g2_ms, out / 'model.png')
-    return 0
+              + f'; camera arbiters {sum(arb_ms.values()):.1f}; general arbiter {ga_ms:.1f}']
+    return model, lines
 
 
 def _plot(model, Ts, g2_ms, path):

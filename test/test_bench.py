@@ -1,0 +1,109 @@
+"""`ego-motion bench`: the figures and the targets table computed from given numbers (no run,
+no timing asserted), and the options that leave out its long parts."""
+import math
+
+import pytest
+
+from multicam_ego_motion import bench_targets
+from multicam_ego_motion.bench_measures import RateFigures, rate_figures, relative_difference, track_cost
+from conftest import run_cli
+
+
+def quarter(cam, q, features, track_ms, **more):
+    return f'ego_motion/{cam}/q{q}', {'features': str(features), 'track_ms': f'{track_ms:.3f}',
+                                      'state': 'tracking', **more}
+
+
+def test_track_cost_sums_over_quarters_and_frames():
+    statuses = [quarter('front', 1, 100, 1.0), quarter('front', 2, 50, 2.0),     # frame 1
+                quarter('front', 1, 150, 3.0), quarter('rear', 4, 0, 0.5),        # frame 2
+                # not quarters: arbiters report other stage times, never counted
+                ('ego_motion/front/arbiter', {'arbiter_ms': '9.0', 'features': '999'}),
+                ('ego_motion/general_arbiter', {'arbiter_ms': '9.0'}),
+                # a quarter without a tracking report (before its CameraInfo) is skipped
+                ('ego_motion/left/q3', {'state': 'waiting'})]
+    c = track_cost(statuses)
+    assert (c.track_ms, c.points, c.reports) == (pytest.approx(6.5), 300, 4)
+    assert c.us_per_point == pytest.approx(6.5e3 / 300)
+    assert c.points_per_report == pytest.approx(75)
+    assert math.isnan(track_cost([('ego_motion/front/arbiter', {})]).us_per_point)
+
+
+def test_rate_figures_latency_drops_and_real_time_factor():
+    # 4 frames at 10 Hz (bag_s counts one period past the last: 0.4 s); the third got no /odom
+    published = {100: 10.0, 200: 10.1, 300: 10.2, 400: 10.3}
+    received = {100: 10.05, 200: 10.12, 400: 10.38, 999: 11.0}
+    f = rate_figures(published, received, bag_s=0.4, n_frames=4)
+    assert f.frames == 4 and f.dropped == 1
+    assert sorted(f.latencies_ms) == pytest.approx([20.0, 50.0, 80.0])
+    assert f.p50 == pytest.approx(50.0)
+    # first publish 10.0 -> last /odom 10.38, plus one period 0.1
+    assert f.rtf == pytest.approx(0.4 / 0.48)
+    nothing = rate_figures(published, {}, bag_s=0.4, n_frames=4)
+    assert nothing.dropped == 4 and math.isnan(nothing.rtf) and math.isnan(nothing.p99)
+
+
+def test_relative_difference_live_vs_offline():
+    assert relative_difference(1.1, 1.0) == pytest.approx(0.1)
+    assert relative_difference(0.9, 1.0) == pytest.approx(0.1)
+    assert math.isnan(relative_difference(1.0, 0.0))
+    assert math.isnan(relative_difference(float('nan'), 1.0))
+
+
+def figures(rtf, dropped, p99, frames=100):
+    return RateFigures(frames, rtf, [p99] * (frames - dropped))
+
+
+def targets(**kw):
+    args = dict(seq_ms=150.0, seq_cpu_ms=148.0, m1_ms=160.0, m2_ms=94.0, graph_cpu_m2_ms=165.0,
+                replay_cpu_m2_ms=8.5, speedup_bound=1.74, default_rate=figures(1.0, 0, 45.0))
+    args.update(kw)
+    return {t.name.split(':')[0].split(' <=')[0].split(' >=')[0]: t for t in bench_targets.bench_targets(**args)}
+
+
+def test_targets_from_given_numbers():
+    t = targets(camera_rate=figures(0.86, 33, 250.0, frames=301),
+                live_offline={15.0: (0.05, 0.02), 30.0: (0.05, 0.30)})
+    assert len(t) == 8
+    seq = t['sequential pipeline CPU per frame']
+    assert (seq.measured, seq.met) == ('148.0 ms', False)
+    over = next(v for k, v in t.items() if k.startswith('graph overhead'))
+    assert over.measured.startswith('25.5 ms') and over.met is False     # 165 + 8.5 - 148
+    sp = t['speedup at M = 2']
+    assert sp.measured == '1.60 (the CPU time allows 1.74)' and sp.met is False
+    m1 = t['graph at M = 1']
+    assert m1.measured == '1.07 x' and m1.met is True
+    assert t['default bag, rate mode, M = 2'].met is True
+    cam = next(v for k, v in t.items() if k.startswith('camera rate'))
+    assert cam.measured == 'RTF 0.86, 33 of 301 dropped, p99 250 ms' and cam.met is False
+    live = [v for k, v in t.items() if k.startswith('live')]
+    assert [v.met for v in live] == [True, False]
+    assert live[1].measured == 'ATE 5.0 %, final drift 30.0 % apart'
+
+
+def test_targets_met_at_their_bounds_and_not_run_when_skipped():
+    t = targets(seq_cpu_ms=45.0, graph_cpu_m2_ms=50.0, replay_cpu_m2_ms=5.0, seq_ms=180.0, m1_ms=225.0,
+                m2_ms=100.0, default_rate=figures(0.98, 0, 50.0),
+                skipped_camera_rate='--skip-camera-rate', skipped_live_offline='--skip-live-vs-offline')
+    measured = [v for v in t.values() if v.met is not None]
+    assert len(measured) == 5 and all(v.met for v in measured)
+    skipped = [v for v in t.values() if v.met is None]
+    assert [v.measured for v in skipped] == ['skipped (--skip-camera-rate)'] + ['skipped (--skip-live-vs-offline)'] * 2
+    # a drop, or a p99 one ms over, misses
+    assert not bench_targets.rate_target('x', figures(1.0, 1, 10.0), 50.0).met
+    assert not bench_targets.rate_target('x', figures(1.0, 0, 51.0), 50.0).met
+
+
+def test_targets_table_one_row_each():
+    lines = bench_targets.table([bench_targets.Target('a <= 1', '0.5', True),
+                                 bench_targets.Target('b >= 2', '1.0', False),
+                                 bench_targets.Target('c', 'skipped (--x)', None)])
+    assert lines[:2] == ['| target | measured | |', '|---|---|---|']
+    assert lines[2:] == ['| a <= 1 | 0.5 | met |', '| b >= 2 | 1.0 | **missed** |', '| c | skipped (--x) | not run |']
+
+
+def test_bench_help_lists_the_skip_options():
+    r = run_cli('bench', '--help')
+    assert r.returncode == 0, r.stderr
+    for opt in ('--skip-camera-rate', '--skip-live-vs-offline', '--camera-rate-bags'):
+        assert opt in r.stdout
