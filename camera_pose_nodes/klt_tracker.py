@@ -24,6 +24,8 @@ class KLTConfig:
     max_features: int = 80        # extraction tops the quarter up to this
     window: int = 21              # LK window (px, odd)
     pyramid_levels: int = 3       # LK pyramid levels above the base image
+    iterations: int = 30          # LK iterations per level, at most
+    epsilon_px: float = 0.01      # LK stops when a step is shorter
     fb_threshold_px: float = 0.5  # forward-backward disagreement that rejects a track
     quality_level: float = 0.01   # Shi-Tomasi quality relative to the cell's best corner
     min_distance_px: float = 8.0  # minimum spacing between features
@@ -157,7 +159,7 @@ class KLTTracker:
         off = self.region.offset
         p0 = (self.pts - off).reshape(-1, 1, 2).astype(np.float32)
         w = self.cfg.window
-        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, self.cfg.iterations, self.cfg.epsilon_px)
         prev, lv = self.prev_crop, self.cfg.pyramid_levels
 
         def lk(chunk):

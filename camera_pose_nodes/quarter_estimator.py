@@ -52,6 +52,8 @@ PARAMETERS = {
     'max_features': (80, 'extraction tops the quarter up to this many features', 8, 4000),
     'klt_window': (21, 'Lucas-Kanade window size in pixels (odd)', 5, 63),
     'pyramid_levels': (3, 'Lucas-Kanade pyramid levels above the full-resolution image', 0, 6),
+    'klt_iterations': (30, 'Lucas-Kanade iterations per pyramid level, at most', 1, 100),
+    'klt_epsilon_px': (0.01, 'Lucas-Kanade stops iterating when a step moves the point less than this (px)', 1e-4, 1.0),
     'fb_threshold_px': (0.5, 'forward-backward tracking error that rejects a track (px)', 0.05, 10.0),
     'quality_level': (0.01, 'Shi-Tomasi corner quality relative to the best in its cell', 1e-4, 0.5),
     'min_distance_px': (8.0, 'minimum distance between features (px)', 1.0, 100.0),
@@ -85,6 +87,8 @@ class QuarterParams:
     max_features: int = PARAMETERS['max_features'][0]
     klt_window: int = PARAMETERS['klt_window'][0]
     pyramid_levels: int = PARAMETERS['pyramid_levels'][0]
+    klt_iterations: int = PARAMETERS['klt_iterations'][0]
+    klt_epsilon_px: float = PARAMETERS['klt_epsilon_px'][0]
     fb_threshold_px: float = PARAMETERS['fb_threshold_px'][0]
     quality_level: float = PARAMETERS['quality_level'][0]
     min_distance_px: float = PARAMETERS['min_distance_px'][0]
@@ -150,7 +154,8 @@ class QuarterEstimator:
         p = self.params
         self.klt_cfg = KLTConfig(
             min_features=p.min_features, max_features=p.max_features, window=p.klt_window,
-            pyramid_levels=p.pyramid_levels, fb_threshold_px=p.fb_threshold_px,
+            pyramid_levels=p.pyramid_levels, iterations=p.klt_iterations,
+            epsilon_px=p.klt_epsilon_px, fb_threshold_px=p.fb_threshold_px,
             quality_level=p.quality_level, min_distance_px=p.min_distance_px,
             block_size=p.block_size, grid_rows=p.grid_rows, grid_cols=p.grid_cols,
             max_history=p.max_history, parallel_chunks=p.parallel_chunks)

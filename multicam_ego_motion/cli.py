@@ -17,10 +17,10 @@ SUBCOMMANDS = {
     'record': ('multicam_ego_motion.bag.recorder', 'record topics into a bag'),
     'evaluate': ('multicam_ego_motion.evaluation.evaluate', 'score an estimate against ground truth'),
     'replay': ('multicam_ego_motion.replay', 'run the whole graph on a bag and score it'),
-    'bench': ('multicam_ego_motion.bench', 'measure sequential vs parallel timing'),
+    'bench': ('multicam_ego_motion.bench.timing', 'measure sequential vs parallel timing'),
     'ablation': ('multicam_ego_motion.ablation', 'fused vs single cameras vs single quarters on a bag'),
-    'matrix': ('multicam_ego_motion.accuracy_matrix', 'accuracy matrix: seeds x scenarios through the sequential pipeline'),
-    'profile': ('multicam_ego_motion.profile_table', 'where the CPU goes: stage x kind of work, per frame'),
+    'matrix': ('multicam_ego_motion.bench.accuracy_matrix', 'accuracy matrix: seeds x scenarios through the sequential pipeline'),
+    'profile': ('multicam_ego_motion.bench.profile_table', 'where the CPU goes: stage x kind of work, per frame'),
 }
 
 

@@ -4,8 +4,8 @@ import math
 
 import pytest
 
-from multicam_ego_motion import bench_targets
-from multicam_ego_motion.bench_measures import RateFigures, rate_figures, relative_difference, track_cost
+from multicam_ego_motion.bench import targets as bench_targets
+from multicam_ego_motion.bench.measures import RateFigures, rate_figures, relative_difference, track_cost
 from conftest import run_cli
 
 

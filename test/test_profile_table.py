@@ -6,7 +6,7 @@ import pstats
 import pytest
 
 from conftest import REPO, run_cli
-from multicam_ego_motion.profile_table import (MATH, OPENCV, OTHER, PYTHON, ROSMSG, STAGES,
+from multicam_ego_motion.bench.profile_table import (MATH, OPENCV, OTHER, PYTHON, ROSMSG, STAGES,
                                                attribute, kind_of)
 
 ROOTS = {('a.py', 'A'): 'stage a', ('b.py', 'B'): 'stage b'}

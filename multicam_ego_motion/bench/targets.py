@@ -31,7 +31,7 @@ def table(targets: List[Target]) -> List[str]:
 
 
 def rate_target(name: str, fig, p99_ms: float, skipped: str = '') -> Target:
-    """RTF >= RTF_MIN, nothing dropped, p99 within p99_ms; fig: bench_measures.RateFigures."""
+    """RTF >= RTF_MIN, nothing dropped, p99 within p99_ms; fig: measures.RateFigures."""
     name = f'{name}: RTF >= {RTF_MIN:.2f} (1.0), 0 dropped, latency p99 <= {p99_ms:.0f} ms'
     if fig is None:
         return Target(name, f'skipped ({skipped})' if skipped else 'not measured', None)

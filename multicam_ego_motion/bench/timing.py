@@ -5,9 +5,9 @@ lockstep at M = 1 and M = 2 workers (wall time per frame, speedup, efficiency, i
 (Ts - Tpar) / Ts; each of these three runs twice and the faster counts: a shared host's
 speed varies by 10-20 % within minutes), the graph in rate mode at the bag's rate on M = 2 (real-time factor,
 latency from the player publishing a frame to /odom arriving, dropped frames, peak memory),
-the camera-rate row (four 640x480 cameras at 30 Hz in rate mode on M = 2: bench_camera_rate),
-accuracy live vs offline at 15 and 30 Hz (bench_live_offline), the track CPU per tracked
-point, the targets, one row each with met or missed (bench_targets), and the paper's model
+the camera-rate row (four 640x480 cameras at 30 Hz in rate mode on M = 2: camera_rate.py),
+accuracy live vs offline at 15 and 30 Hz (live_offline.py), the track CPU per tracked
+point, the targets, one row each with met or missed (targets.py), and the paper's model
 (parallel_time_model) fed with the median stage times measured in the M = 2 lockstep run,
 next to the paper's Fig. 6(d). Measured, not asserted. The VGA bags are generated on first
 use into --camera-rate-bags and reused; --skip-camera-rate and --skip-live-vs-offline leave
@@ -20,7 +20,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from multicam_ego_motion.bench_measures import (graph_run, per_frame_ms, rate_figures, read_statuses,
+from multicam_ego_motion.bench.measures import (graph_run, per_frame_ms, rate_figures, read_statuses,
                                                 track_cost, write_latency_csv)
 from multicam_ego_motion.errors import UserError
 
@@ -43,7 +43,7 @@ def configure_parser(p):
 
 def stage_medians(statuses, cameras):
     """Median stage times per quarter, camera arbiter and general arbiter from /diagnostics
-    (bench_measures.read_statuses)."""
+    (measures.read_statuses)."""
     from multicam_ego_motion.coordinator.parallel_time_model import STAGES
     per = {}
     for name, vals in statuses:
@@ -63,7 +63,7 @@ def stage_medians(statuses, cameras):
 def run(args) -> int:
     from multicam_ego_motion import dds_transport, ros_domain
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
-    from multicam_ego_motion.bench_measures import bag_window
+    from multicam_ego_motion.bench.measures import bag_window
     from multicam_ego_motion.replay import DEFAULT_PARAMS, resolve_rig
 
     ros_domain.isolate()
@@ -92,11 +92,11 @@ def run(args) -> int:
     # 4. camera rate (VGA 30 Hz) and 5. accuracy live vs offline (VGA 15 and 30 Hz)
     cam_rate = live_off = None
     if not args.skip_camera_rate:
-        from multicam_ego_motion.bench_camera_rate import camera_rate
+        from multicam_ego_motion.bench.camera_rate import camera_rate
         cam_rate = camera_rate(bags_folder, out, params)
         lines += [''] + cam_rate.lines
     if not args.skip_live_vs_offline:
-        from multicam_ego_motion.bench_live_offline import live_vs_offline
+        from multicam_ego_motion.bench.live_offline import live_vs_offline
         reuse = {30.0: (cam_rate.run_dir, cam_rate.cpu_per_image_ms)} if cam_rate else None
         live_off = live_vs_offline(bags_folder, out, params, live_runs=reuse)
         lines += ['', 'Accuracy live (rate mode) vs offline (lockstep), against the bag\'s ground truth; '
@@ -114,7 +114,7 @@ def run(args) -> int:
         lines.append(f'| {name} | {c.us_per_point:.1f} | {c.points_per_report:.0f} |')
 
     # 7. the targets
-    from multicam_ego_motion import bench_targets
+    from multicam_ego_motion.bench import targets as bench_targets
     targets = bench_targets.bench_targets(
         seq_ms=d.Ts, seq_cpu_ms=d.Ts_cpu, m1_ms=d.best[1][0], m2_ms=d.best[2][0],
         graph_cpu_m2_ms=d.best[2][2], replay_cpu_m2_ms=d.best[2][3], speedup_bound=d.ceiling,

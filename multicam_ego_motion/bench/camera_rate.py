@@ -9,7 +9,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from multicam_ego_motion.bench_measures import (RateFigures, bag_window, graph_run, per_frame_ms,
+from multicam_ego_motion.bench.measures import (RateFigures, bag_window, graph_run, per_frame_ms,
                                                 rate_figures, write_latency_csv)
 
 VGA = dict(scenario='loop', seed=7, duration=10.0, width=640, height=480, fx=400.0)
