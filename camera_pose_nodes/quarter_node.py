@@ -39,6 +39,7 @@ NODE_PARAMETERS = {
     'image_qos': ('sensor_data', 'image subscription QoS: sensor_data or reliable (lockstep replay)', None, None),
     'fused_pose_topic': ('/ego_motion/fused_pose', 'general arbiter feedback topic', None, None),
     'feedback_timeout_s': (0.5, 'longest wait for the previous frame\'s fused pose', 0.0, 60.0),
+    'newest_image_only': (True, 'when the graph falls behind, take the newest image waiting and skip the older ones (live: bounded latency); false processes every image (lockstep replay)', None, None),
 }
 
 
@@ -72,6 +73,8 @@ class QuarterNode(Node):
         self.quarter = int(p['quarter'])
         self.source = f'{self.camera.name}/q{self.quarter}'
         self.feedback_timeout_s = p['feedback_timeout_s']
+        self.newest_image_only = p['newest_image_only']
+        self.skipped = 0                # images skipped since the last report (newest_image_only)
         self.estimator = None
         self.intrinsics = None
         self.info_error = None
@@ -179,7 +182,15 @@ class QuarterNode(Node):
                 return
             if not self.ready_for_next(arrived):
                 return
-            self.pending.popleft()
+            if self.newest_image_only and len(self.pending) > 1:
+                # Behind the camera: queued frames would only add latency (at 30 Hz on two
+                # cores a queue grew to a second). Every quarter makes this choice when the
+                # same fused pose arrives, with the same images waiting, so the arbiters
+                # still get whole frames; the tracker copes with the longer flow.
+                self.skipped += len(self.pending) - 1
+                while len(self.pending) > 1:
+                    self.pending.popleft()
+            _, msg = self.pending.popleft()
             self.process(msg)
 
     def can_prefetch(self) -> bool:
@@ -272,7 +283,9 @@ class QuarterNode(Node):
         values = {}
         if est is not None:
             values = {'state': est.state, 'features': est.n_features, 'landmarks': est.n_landmarks,
-                      'floor_landmarks': est.n_floor, 'inliers': est.n_inliers}
+                      'floor_landmarks': est.n_floor, 'inliers': est.n_inliers,
+                      'images_skipped': self.skipped}
+            self.skipped = 0
             values.update({f'{k}_ms': float(v) for k, v in est.stage_ms.items()})
         if stamp is None:
             stamp = self.get_clock().now().to_msg()

@@ -79,7 +79,7 @@ def graph_overrides(lockstep: bool, use_wheel: bool):
     # Lockstep replay waits for everything (deterministic); rate mode must keep going.
     wait = 60.0 if lockstep else 0.3
     return {'quarter': {'image_qos': 'reliable' if lockstep else 'sensor_data',
-                        'feedback_timeout_s': wait},
+                        'feedback_timeout_s': wait, 'newest_image_only': not lockstep},
             'camera_arbiter': {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2},
             'general_arbiter': {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2,
                                 'wheel_wait_s': 2.0 if lockstep else 0.05,
