@@ -13,10 +13,12 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path
 from rclpy.node import Node
+from std_msgs.msg import Int64MultiArray
 from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
 
 from arbiter_node.general_fusion import PARAMETERS as FUSION_PARAMETERS
+from camera_pose_nodes.frame_schedule import FrameGovernor
 from arbiter_node.general_fusion import GeneralFusion
 from arbiter_node.path_history import PathHistory
 from arbiter_node.stamp_sync import StampSynchronizer
@@ -29,7 +31,7 @@ from multicam_ego_motion.node_parameters import declare_from_table
 from multicam_ego_motion.pose_messages import (covariance_field, estimate_to_msg, fill_pose,
                                                msg_to_estimate, ns_to_stamp, stamp_to_ns,
                                                transform_msg)
-from multicam_ego_motion.qos import RELIABLE
+from multicam_ego_motion.qos import LATCHED, RELIABLE
 from multicam_ego_motion.rig import load_rig
 from multicam_ego_motion.se3 import is_valid_covariance
 
@@ -50,6 +52,7 @@ NODE_PARAMETERS = {
     'path_min_spacing_m': (0.05, '/ego_motion/path keeps a pose every this many metres', 0.0, 100.0),
     'path_min_turn_rad': (0.1, '... or every this much rotation', 0.0, 3.15),
     'path_publish_period_s': (1.0, '/ego_motion/path is republished at most this often (stamp time; it costs ~10 us per pose)', 0.0, 3600.0),
+    'max_lag_s': (0.25, 'live: when the fused poses lag their frames by more than this, the quarters process every 2nd, 3rd ... frame until they catch up (/ego_motion/frame_schedule); 0 processes every frame (lockstep replay)', 0.0, 10.0),
 }
 
 
@@ -69,6 +72,9 @@ class GeneralArbiterNode(Node):
                                 p['path_publish_period_s'])
         self.on_frame_done = None            # hook(node) after a frame was published (snapshots)
         self.diag_sink = None                # hook(stamp, status): the worker batches statuses per frame
+        self.governor = FrameGovernor(p['max_lag_s'])
+        # Latched: a quarter that starts or moves later still gets the schedule in force.
+        self.pub_schedule = self.create_publisher(Int64MultiArray, '/ego_motion/frame_schedule', LATCHED)
         self.pub_fused = self.create_publisher(PoseWithCovarianceStamped, '/ego_motion/fused_pose', RELIABLE)
         self.pub_odom = self.create_publisher(Odometry, '/odom', RELIABLE)
         self.pub_tf = self.create_publisher(TFMessage, '/tf', RELIABLE)
@@ -134,9 +140,28 @@ class GeneralArbiterNode(Node):
                     and is_valid_covariance(fused.twist_covariance)):
                 self.get_logger().error(f'fused estimate at {g.stamp_ns} is not finite/PD: not published')
                 continue
+            self.govern(g.stamp_ns)
             self.publish(fused, g, ms)
             if self.on_frame_done is not None:
                 self.on_frame_done(self)
+
+    def govern(self, stamp_ns):
+        """A new frame schedule when the lag calls for one: published before the fused pose,
+        so the quarters have it when they pick their next frame."""
+        was_enabled = self.governor.enabled
+        schedule = self.governor.update(stamp_ns, self.get_clock().now().nanoseconds)
+        if was_enabled and not self.governor.enabled:
+            self.get_logger().warn(
+                f'frame stamps and this node\'s clock differ by more than '
+                f'{self.governor.clock_sanity_s:.0f} s: frames are never skipped (live, the '
+                'driver must stamp with the system clock; a replay must publish /clock and '
+                'run the general arbiter with use_sim_time)')
+        if schedule is not None:
+            self.pub_schedule.publish(Int64MultiArray(data=schedule.to_list()))
+            self.get_logger().info(
+                f'behind the cameras: processing every {schedule.stride}. frame from '
+                f'{schedule.from_ns / 1e9:.3f} s' if schedule.stride > 1 else
+                f'caught up: processing every frame from {schedule.from_ns / 1e9:.3f} s')
 
     # --- hand-over between workers (coordinator) ------------------------------------------
     def idle(self) -> bool:
@@ -146,12 +171,14 @@ class GeneralArbiterNode(Node):
         """Picklable state: the fusion core (pickled whole), wheel buffer, last fused stamp.
         /ego_motion/path restarts after a restore (its history is not carried)."""
         return {'fusion': self.fusion, 'wheel': self.wheel,
-                'last_released_ns': self.sync.last_released_ns}
+                'last_released_ns': self.sync.last_released_ns,
+                'governor': self.governor.get_state()}
 
     def set_state(self, s):
         self.fusion = s['fusion']
         self.wheel = s['wheel']
         self.sync.last_released_ns = s['last_released_ns']
+        self.governor.set_state(s['governor'])
 
     def publish(self, fused, group, ms):
         stamp = ns_to_stamp(fused.stamp_ns)
@@ -186,7 +213,7 @@ class GeneralArbiterNode(Node):
             'ego_motion/general_arbiter', level, '; '.join(parts),
             {'state': fused.state, 'scale_observed': fused.scale_observed,
              'cameras_used': ','.join(fused.cameras_used), 'cameras_missing': ','.join(missing),
-             'arbiter_ms': ms}), self.diag_sink, self.pub_diag)
+             'frame_stride': self.governor.stride, 'arbiter_ms': ms}), self.diag_sink, self.pub_diag)
 
 
 def main(args=None):

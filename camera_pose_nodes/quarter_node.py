@@ -16,8 +16,10 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Int64MultiArray
 
 from camera_pose_nodes.camera_model import intrinsics_from_msg
+from camera_pose_nodes.frame_schedule import FrameSchedule, ScheduleBook
 from camera_pose_nodes.image_conversion import image_msg_to_gray
 from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, QuarterParams
 from multicam_ego_motion import diagnostics
@@ -25,7 +27,7 @@ from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.node_main import spin_node
 from multicam_ego_motion.node_parameters import declare_from_table
 from multicam_ego_motion.pose_messages import estimate_to_msg, msg_to_estimate, stamp_to_ns
-from multicam_ego_motion.qos import RELIABLE, image_qos
+from multicam_ego_motion.qos import LATCHED, RELIABLE, image_qos
 from multicam_ego_motion.rig import load_rig
 
 # Timeouts only: the normal path is driven by messages. Every timer wake-up makes rclpy's
@@ -39,7 +41,7 @@ NODE_PARAMETERS = {
     'image_qos': ('sensor_data', 'image subscription QoS: sensor_data or reliable (lockstep replay)', None, None),
     'fused_pose_topic': ('/ego_motion/fused_pose', 'general arbiter feedback topic', None, None),
     'feedback_timeout_s': (0.5, 'longest wait for the previous frame\'s fused pose', 0.0, 60.0),
-    'newest_image_only': (True, 'when the graph falls behind, take the newest image waiting and skip the older ones (live: bounded latency); false processes every image (lockstep replay)', None, None),
+    'frame_schedule_topic': ('/ego_motion/frame_schedule', 'which frames to process when the graph is behind the cameras (general arbiter)', None, None),
 }
 
 
@@ -73,8 +75,8 @@ class QuarterNode(Node):
         self.quarter = int(p['quarter'])
         self.source = f'{self.camera.name}/q{self.quarter}'
         self.feedback_timeout_s = p['feedback_timeout_s']
-        self.newest_image_only = p['newest_image_only']
-        self.skipped = 0                # images skipped since the last report (newest_image_only)
+        self.schedule = ScheduleBook()  # frames skipped while the graph is behind (frame_schedule)
+        self.skipped = 0                # images skipped since the last report
         self.estimator = None
         self.intrinsics = None
         self.info_error = None
@@ -95,7 +97,8 @@ class QuarterNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         # topic -> (type, QoS, callback) of the per-frame inputs
         self.inputs = {self.camera.image_topic: (Image, image_qos(p['image_qos']), self.on_image),
-                       p['fused_pose_topic']: (PoseWithCovarianceStamped, RELIABLE, self.on_fused)}
+                       p['fused_pose_topic']: (PoseWithCovarianceStamped, RELIABLE, self.on_fused),
+                       p['frame_schedule_topic']: (Int64MultiArray, LATCHED, self.on_schedule)}
         if not shared_inputs:
             for topic, (msg_type, qos, callback) in self.inputs.items():
                 self.create_subscription(msg_type, topic, callback, qos)
@@ -141,9 +144,23 @@ class QuarterNode(Node):
         if self.last_processed_ns is not None and stamp_ns <= self.last_processed_ns:
             self.report_stale(msg, stamp_ns)
             return
+        if not self.schedule.takes(stamp_ns):
+            self.skipped += 1          # the graph is behind: a frame every quarter skips
+            return
         self.pending.append((time.monotonic(), msg))
         self.drain()
         self.offer_work_ahead()
+
+    def on_schedule(self, msg: Int64MultiArray):
+        try:
+            self.schedule.add(FrameSchedule.from_list(msg.data))
+        except ValueError as e:
+            self.get_logger().error(f'{self.source}: frame schedule ignored: {e}')
+            return
+        # frames that waited under the previous schedule
+        kept = [(t, m) for t, m in self.pending if self.schedule.takes(stamp_to_ns(m.header.stamp))]
+        self.skipped += len(self.pending) - len(kept)
+        self.pending = deque(kept)
 
     def on_fused(self, msg: PoseWithCovarianceStamped):
         fused = decode_fused(msg)
@@ -182,14 +199,6 @@ class QuarterNode(Node):
                 return
             if not self.ready_for_next(arrived):
                 return
-            if self.newest_image_only and len(self.pending) > 1:
-                # Behind the camera: queued frames would only add latency (at 30 Hz on two
-                # cores a queue grew to a second). Every quarter makes this choice when the
-                # same fused pose arrives, with the same images waiting, so the arbiters
-                # still get whole frames; the tracker copes with the longer flow.
-                self.skipped += len(self.pending) - 1
-                while len(self.pending) > 1:
-                    self.pending.popleft()
             _, msg = self.pending.popleft()
             self.process(msg)
 
@@ -268,7 +277,8 @@ class QuarterNode(Node):
             return None
         return {'estimator': self.estimator.get_state(), 'intrinsics': self.intrinsics,
                 'image_size': self.estimator.image_size,
-                'last_processed_ns': self.last_processed_ns, 'last_fused_ns': self.last_fused_ns}
+                'last_processed_ns': self.last_processed_ns, 'last_fused_ns': self.last_fused_ns,
+                'schedule': self.schedule.get_state()}
 
     def set_state(self, s):
         self.intrinsics = s['intrinsics']
@@ -278,6 +288,7 @@ class QuarterNode(Node):
         self.stop_camera_info()
         self.last_processed_ns = s['last_processed_ns']
         self.last_fused_ns = s['last_fused_ns']
+        self.schedule.set_state(s['schedule'])
 
     def publish_diag(self, stamp, level, message, est=None):
         values = {}

@@ -78,12 +78,18 @@ LOCKSTEP_DEPTH = 2
 def graph_overrides(lockstep: bool, use_wheel: bool):
     # Lockstep replay waits for everything (deterministic); rate mode must keep going.
     wait = 60.0 if lockstep else 0.3
+    general = {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2,
+               'wheel_wait_s': 2.0 if lockstep else 0.05,
+               'use_wheel_odometry': use_wheel,
+               # rate mode: the lag behind the frames (frame skipping, max_lag_s) is read on
+               # the bag's /clock; lockstep processes every frame
+               'use_sim_time': not lockstep}
+    if lockstep:
+        general['max_lag_s'] = 0.0
     return {'quarter': {'image_qos': 'reliable' if lockstep else 'sensor_data',
-                        'feedback_timeout_s': wait, 'newest_image_only': not lockstep},
+                        'feedback_timeout_s': wait},
             'camera_arbiter': {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2},
-            'general_arbiter': {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2,
-                                'wheel_wait_s': 2.0 if lockstep else 0.05,
-                                'use_wheel_odometry': use_wheel}}
+            'general_arbiter': general}
 
 
 def recorded_topics(rig):

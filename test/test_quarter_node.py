@@ -45,39 +45,49 @@ def _front_frames(n):
             return info, images
 
 
-def _quarter(newest_image_only):
+def _quarter():
     from rclpy.parameter import Parameter
     from camera_pose_nodes.quarter_node import QuarterNode
     node = QuarterNode(shared_inputs=True, parameter_overrides=[
         Parameter('camera', value='front'), Parameter('quarter', value=3),
-        Parameter('rig_file', value=str(REPO / 'bags' / 'default' / 'rig.yaml')),
-        Parameter('newest_image_only', value=newest_image_only)])
+        Parameter('rig_file', value=str(REPO / 'bags' / 'default' / 'rig.yaml'))])
     processed, diag = [], []
     node.estimate_sink = lambda msg: processed.append(stamp_to_ns(msg.header.stamp))
     node.diag_sink = lambda stamp, status: diag.append({kv.key: kv.value for kv in status.values})
     return node, processed, diag
 
 
-@pytest.mark.parametrize('newest_image_only', [True, False])
-def test_a_quarter_behind_the_camera_takes_the_newest_image(rclpy_context, newest_image_only):
-    """Live (newest_image_only): frames that queued while the fused pose of the last one was
-    on its way are skipped, and counted; lockstep replay (false) processes every frame."""
-    info, images = _front_frames(4)
-    node, processed, diag = _quarter(newest_image_only)
+def test_a_quarter_follows_the_frame_schedule(rclpy_context):
+    """Without a schedule every frame is processed in order; with the general arbiter's
+    schedule (every 2nd frame from a fused one) the others are skipped, also those already
+    waiting, and counted in /diagnostics."""
+    from std_msgs.msg import Int64MultiArray
+    info, images = _front_frames(8)
+    stamps = [stamp_to_ns(m.header.stamp) for m in images]
+    period = stamps[1] - stamps[0]
+    node, processed, diag = _quarter()
     try:
         node.on_info(info)
-        stamps = [stamp_to_ns(m.header.stamp) for m in images]
         node.on_image(images[0])                       # the first frame needs no feedback
-        for m in images[1:]:
+        for m in images[1:4]:
             node.on_image(m)                           # the graph is busy: frames queue
         assert processed == stamps[:1] and len(node.pending) == 3
         node.on_fused(fused_msg(stamps[0], 0.0))
-        if newest_image_only:
-            assert processed == [stamps[0], stamps[3]] and not node.pending
-            assert diag[-1]['images_skipped'] == '2'
-        else:
-            assert processed == stamps[:2] and len(node.pending) == 2
-            assert diag[-1]['images_skipped'] == '0'
+        assert processed == stamps[:2] and len(node.pending) == 2     # every frame, in order
+        assert diag[-1]['images_skipped'] == '0'
+        # behind: from frame 1 (fused), every 2nd frame: 3, 5, 7 (2 waits and is skipped)
+        node.on_schedule(Int64MultiArray(data=[stamps[1], period, 2]))
+        assert [stamp_to_ns(m.header.stamp) for _, m in node.pending] == [stamps[3]]
+        for m in images[4:8]:
+            node.on_image(m)
+        node.on_fused(fused_msg(stamps[1], 0.1))
+        node.on_fused(fused_msg(stamps[3], 0.2))
+        node.on_fused(fused_msg(stamps[5], 0.3))
+        assert processed == [stamps[0], stamps[1], stamps[3], stamps[5], stamps[7]]
+        assert sum(int(d['images_skipped']) for d in diag) == 3     # frames 2, 4, 6
+        # a malformed schedule is refused with an error, the one in force stays
+        node.on_schedule(Int64MultiArray(data=[stamps[7], 0, 2]))
+        assert node.schedule.takes(stamps[7] + 2 * period) and not node.schedule.takes(stamps[7] + period)
     finally:
         node.estimator.close()
         node.destroy_node()

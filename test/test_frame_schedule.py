@@ -1,0 +1,73 @@
+"""Frame skipping when the graph is behind the cameras: the general arbiter's governor and
+the schedule every quarter follows (ROS-free)."""
+import pytest
+
+from camera_pose_nodes.frame_schedule import FrameGovernor, FrameSchedule, ScheduleBook
+
+P = 33_333_333          # 30 Hz
+T0 = 1_704_067_200_000_000_000
+
+
+def test_a_schedule_takes_every_stride_th_frame_from_its_start_by_stamp_alone():
+    s = FrameSchedule(T0, P, 3)
+    taken = [k for k in range(10) if s.takes(T0 + k * P + (k % 2) * 1000)]   # stamps jitter
+    assert taken == [0, 3, 6, 9]
+    assert FrameSchedule(T0, P, 1).takes(T0 + 5 * P)
+    assert FrameSchedule.from_list(s.to_list()) == s
+    with pytest.raises(ValueError):
+        FrameSchedule.from_list([T0, 0, 2])
+
+
+def test_a_book_applies_each_schedule_from_its_start_and_survives_a_hand_over():
+    book = ScheduleBook()
+    assert all(book.takes(T0 + k * P) for k in range(5))
+    book.add(FrameSchedule(T0 + 2 * P, P, 2))
+    book.add(FrameSchedule(T0 + 8 * P, P, 1))
+    assert [k for k in range(12) if book.takes(T0 + k * P)] == [0, 1, 2, 4, 6, 8, 9, 10, 11]
+    moved = ScheduleBook()
+    moved.set_state(book.get_state())
+    assert [moved.takes(T0 + k * P) for k in range(12)] == [book.takes(T0 + k * P) for k in range(12)]
+
+
+def simulate(governor, cost_frames, n=120):
+    """A graph that needs `cost_frames` frame periods per processed frame (lag in /clock):
+    returns the strides in force and the lags seen."""
+    book, clock, strides, lags = ScheduleBook(), T0, [], []
+    k = 0
+    while k < n:
+        stamp = T0 + k * P
+        if not book.takes(stamp):
+            k += 1
+            continue
+        clock = max(clock, stamp) + cost_frames * P      # done this long after it came
+        s = governor.update(stamp, clock)
+        if s is not None:
+            book.add(s)
+        strides.append(governor.stride)
+        lags.append((clock - stamp) / 1e9)
+        k += 1
+    return strides, lags
+
+
+def test_the_governor_keeps_a_slow_graph_within_its_lag_and_returns_to_every_frame():
+    gov = FrameGovernor(max_lag_s=0.1)
+    strides, lags = simulate(gov, cost_frames=1.6)       # 1.6 periods per frame: falls behind
+    assert set(strides[-20:]) == {2} and max(lags[-20:]) <= 0.1
+    slow = FrameGovernor(max_lag_s=0.1)
+    strides, lags = simulate(slow, cost_frames=3.5, n=300)   # the lag is this graph's latency
+    assert set(strides[-10:]) == {4} and max(lags[-10:]) <= 3.5 * P / 1e9 + 1e-9
+    fast = FrameGovernor(max_lag_s=0.1)
+    strides, _ = simulate(fast, cost_frames=0.5)
+    assert set(strides) == {1}                             # keeps up: every frame
+    # catching up after a slow spell lowers the stride again
+    gov.max_lag_s = 0.1
+    strides, _ = simulate(gov, cost_frames=0.5, n=200)
+    assert strides[-1] == 1
+
+
+def test_the_governor_is_off_in_lockstep_and_when_the_clocks_disagree():
+    off = FrameGovernor(max_lag_s=0.0)
+    assert set(simulate(off, cost_frames=3.0)[0]) == {1}
+    wall = FrameGovernor(max_lag_s=0.1)
+    assert wall.update(T0, T0 + 3600 * 10**9) is None and wall.update(T0 + P, T0 + 3600 * 10**9) is None
+    assert not wall.enabled                # a bag played without /clock: never skip
