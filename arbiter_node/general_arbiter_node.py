@@ -159,7 +159,7 @@ class GeneralArbiterNode(Node):
         if schedule is not None:
             self.pub_schedule.publish(Int64MultiArray(data=schedule.to_list()))
             self.get_logger().info(
-                f'behind the cameras: processing every {schedule.stride}. frame from '
+                f'behind the cameras: processing one frame in {schedule.stride} from '
                 f'{schedule.from_ns / 1e9:.3f} s' if schedule.stride > 1 else
                 f'caught up: processing every frame from {schedule.from_ns / 1e9:.3f} s')
 

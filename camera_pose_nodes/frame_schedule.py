@@ -8,11 +8,16 @@ of the rig (when each quarter simply took the newest image it had, only a fifth 
 frames of a 30 Hz run were fused from the whole rig, and the ATE grew from 0.2 to 6.7 %).
 So the general arbiter decides (FrameGovernor, from the lag of its fused poses behind the
 frame stamps) and publishes a FrameSchedule on /ego_motion/frame_schedule: from a frame that
-every quarter processed (the last fused one), every `stride`-th frame. Quarters apply it to
-the frames they take next (ScheduleBook), so the choice depends on stamps alone.
+every quarter will have processed (two frames of the old schedule after the last fused one,
+so that the schedule reaches every quarter before it applies: a worker's executor may hand
+its quarters the fused pose before the schedule published just ahead of it), every
+`stride`-th frame. Quarters apply it to the frames they take (ScheduleBook), so the choice
+depends on stamps alone.
 """
 from dataclasses import dataclass
 from typing import List, Optional
+
+LEAD_FRAMES = 2      # frames of the old schedule before a new one applies
 
 
 @dataclass(frozen=True)
@@ -71,7 +76,9 @@ class FrameGovernor:
     The lag is the node's clock at fusion minus the frame's stamp: the driver's stamps and
     the clock agree live, and a replay in rate mode runs the general arbiter on the bag's
     /clock. A lag over `max_lag_s` that is still growing (the graph is slower than the
-    frames it takes) raises the stride by one. A steady lag is the time one frame takes
+    frames it takes) raises the stride to one that covers a frame's cost as the growth shows
+    it; a lag over twice `max_lag_s` that no longer grows (a backlog) raises it by one until
+    the backlog drains. A steady lag is the time one frame takes
     through the graph (a frame waits for the fused pose of the one before it), so a frame
     every floor(lag / period) + 1 periods is what the graph can take: the stride comes down
     to that. Changes are at least `hold_frames` fused frames apart (a change takes that long
@@ -96,9 +103,11 @@ class FrameGovernor:
 
     def update(self, stamp_ns: int, now_ns: int) -> Optional[FrameSchedule]:
         """After fusing frame `stamp_ns` at clock `now_ns`: a new schedule, or None."""
+        # The frame period: the shortest step between fused frames (the graph starts on
+        # every frame; a schedule's frames are whole periods apart whatever it is).
         if self.last_stamp_ns is not None and stamp_ns > self.last_stamp_ns:
-            step = (stamp_ns - self.last_stamp_ns) // self.stride
-            if step > 0 and (self.period_ns is None or step < self.period_ns):
+            step = stamp_ns - self.last_stamp_ns
+            if self.period_ns is None or step < self.period_ns:
                 self.period_ns = int(step)
         self.last_stamp_ns = stamp_ns
         if not self.enabled:
@@ -115,15 +124,21 @@ class FrameGovernor:
         stride = self.stride
         if growing:
             if lag > self.max_lag_s:
-                stride = min(self.stride + 1, self.max_stride)
+                # a frame costs the graph its stride's periods plus what the lag grows by
+                # per frame: go straight to a stride that covers it
+                cost_ns = self.stride * self.period_ns + (recent[-1] - recent[0]) * 1e9 / (len(recent) - 1)
+                stride = min(max(self.stride + 1, int(cost_ns // self.period_ns) + 1), self.max_stride)
+        elif lag > 2 * self.max_lag_s:
+            stride = min(self.stride + 1, self.max_stride)      # keeping up: drain the backlog
         elif len(self.lags) >= 2 * self.hold_frames:
             steady = sorted(recent)[len(recent) // 2] * 1e9
             stride = max(1, min(self.stride, int(steady // self.period_ns) + 1))
         if stride == self.stride:
             return None
+        start = int(stamp_ns) + LEAD_FRAMES * self.stride * self.period_ns
         self.stride = stride
         self.lags = []
-        return FrameSchedule(int(stamp_ns), self.period_ns, stride)
+        return FrameSchedule(start, self.period_ns, stride)
 
     def get_state(self) -> dict:
         return {k: (list(v) if isinstance(v, list) else v) for k, v in vars(self).items()}

@@ -96,9 +96,10 @@ class QuarterNode(Node):
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'pose', RELIABLE)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         # topic -> (type, QoS, callback) of the per-frame inputs
-        self.inputs = {self.camera.image_topic: (Image, image_qos(p['image_qos']), self.on_image),
-                       p['fused_pose_topic']: (PoseWithCovarianceStamped, RELIABLE, self.on_fused),
-                       p['frame_schedule_topic']: (Int64MultiArray, LATCHED, self.on_schedule)}
+        # (the schedule first: an executor takes ready subscriptions in creation order)
+        self.inputs = {p['frame_schedule_topic']: (Int64MultiArray, LATCHED, self.on_schedule),
+                       self.camera.image_topic: (Image, image_qos(p['image_qos']), self.on_image),
+                       p['fused_pose_topic']: (PoseWithCovarianceStamped, RELIABLE, self.on_fused)}
         if not shared_inputs:
             for topic, (msg_type, qos, callback) in self.inputs.items():
                 self.create_subscription(msg_type, topic, callback, qos)

@@ -1,6 +1,5 @@
 """QoS profiles of the graph (DESIGN.md: images sensor-data, estimates and odometry reliable)."""
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
-                       qos_profile_sensor_data)
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 RELIABLE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
                       reliability=ReliabilityPolicy.RELIABLE)
@@ -8,6 +7,12 @@ RELIABLE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
 # (a reliable publisher, as the player is, serves both kinds of subscriber).
 RELIABLE_IMAGES = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                              reliability=ReliabilityPolicy.RELIABLE)
+# Live images: best effort (a late frame is worth nothing), and deep enough to hold the frame
+# a quarter is scheduled to take while its worker is busy (frame_schedule): the sensor-data
+# profile's 5 were 170 ms at 30 Hz, and a worker handling a fused pose can be busier.
+SENSOR_IMAGES = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                           reliability=ReliabilityPolicy.BEST_EFFORT,
+                           durability=DurabilityPolicy.VOLATILE)
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                      reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -17,5 +22,5 @@ def image_qos(name: str) -> QoSProfile:
     if name == 'reliable':
         return RELIABLE_IMAGES
     if name == 'sensor_data':
-        return qos_profile_sensor_data
+        return SENSOR_IMAGES
     raise ValueError(f'image_qos must be "sensor_data" or "reliable", got {name!r}')

@@ -93,7 +93,8 @@ def graph_overrides(lockstep: bool, use_wheel: bool):
 
 
 def recorded_topics(rig):
-    topics = ['/odom', '/tf', '/ego_motion/fused_pose', '/ego_motion/path', '/diagnostics']
+    topics = ['/odom', '/tf', '/ego_motion/fused_pose', '/ego_motion/path', '/ego_motion/frame_schedule',
+              '/diagnostics']
     for c in rig.cameras:
         topics.append(f'/{c.name}/pose')
         topics += [f'/{c.name}/q{q}/pose' for q in range(1, 5)]

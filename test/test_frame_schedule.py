@@ -55,7 +55,7 @@ def test_the_governor_keeps_a_slow_graph_within_its_lag_and_returns_to_every_fra
     assert set(strides[-20:]) == {2} and max(lags[-20:]) <= 0.1
     slow = FrameGovernor(max_lag_s=0.1)
     strides, lags = simulate(slow, cost_frames=3.5, n=300)   # the lag is this graph's latency
-    assert set(strides[-10:]) == {4} and max(lags[-10:]) <= 3.5 * P / 1e9 + 1e-9
+    assert set(strides[-5:]) == {4} and max(lags[-5:]) <= 3.5 * P / 1e9 + 1e-9
     fast = FrameGovernor(max_lag_s=0.1)
     strides, _ = simulate(fast, cost_frames=0.5)
     assert set(strides) == {1}                             # keeps up: every frame
