@@ -17,6 +17,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
+from camera_pose_nodes import kernel
 from camera_pose_nodes.camera_model import intrinsics_from_msg
 from camera_pose_nodes.image_conversion import image_msg_to_gray
 from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, QuarterParams
@@ -98,7 +99,8 @@ class QuarterNode(Node):
                 self.create_subscription(msg_type, topic, callback, qos)
         self.info_sub = self.create_subscription(CameraInfo, self.camera.camera_info_topic, self.on_info, RELIABLE)
         self.poll_timer = self.create_timer(POLL_PERIOD_S, self.poll)
-        self.get_logger().info(f'{self.source}: waiting for {self.camera.image_topic}')
+        self.get_logger().info(f'{self.source}: waiting for {self.camera.image_topic} '
+                               f'({kernel.selected()} kernel)')
 
     # --- inputs -------------------------------------------------------------------------
     def on_info(self, msg: CameraInfo):
