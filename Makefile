@@ -18,8 +18,11 @@ NATIVE_SRC := pyproject.toml $(wildcard camera_pose_nodes/native/*.cpp)
 $(READY): requirements.txt setup.py setup.cfg $(TF2_SRC) $(NATIVE_SRC)
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade-strategy only-if-needed -r requirements.txt
-	@# builds the native kernel (camera_pose_nodes/native) with the pybind11 and Eigen just installed
-	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
+	@# Builds the native kernel (camera_pose_nodes/native) with the pybind11 and Eigen just
+	@# installed. --no-use-pep517: `setup.py develop`, which puts the console scripts where
+	@# setup.cfg says (lib/<package>); with pyproject.toml pip would otherwise install an
+	@# editable wheel, scripts in bin/.
+	$(PY) -m pip install --quiet --no-deps --no-build-isolation --no-use-pep517 -e .
 	@# Returns at once when the venv already has a tf2_msgs built from these sources.
 	bash resource/tf2_msgs/build_tf2_msgs.sh $(VENV)
 	@# setup.cfg puts console scripts where `ros2 run` looks (lib/<package>); put the CLI on the venv's PATH too.
