@@ -13,15 +13,21 @@ setup: $(READY)
 
 TF2_SRC := $(wildcard resource/tf2_msgs/*.sh resource/tf2_msgs/*.txt resource/tf2_msgs/*.xml resource/tf2_msgs/msg/*.msg)
 
-$(READY): requirements.txt setup.py setup.cfg $(TF2_SRC)
+NATIVE_SRC := pyproject.toml $(wildcard camera_pose_nodes/native/*.cpp)
+
+$(READY): requirements.txt setup.py setup.cfg $(TF2_SRC) $(NATIVE_SRC)
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade-strategy only-if-needed -r requirements.txt
-	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
+	@# Builds the native kernel (camera_pose_nodes/native) with the pybind11 and Eigen just
+	@# installed. --no-use-pep517: `setup.py develop`, which puts the console scripts where
+	@# setup.cfg says (lib/<package>); with pyproject.toml pip would otherwise install an
+	@# editable wheel, scripts in bin/.
+	$(PY) -m pip install --quiet --no-deps --no-build-isolation --no-use-pep517 -e .
 	@# Returns at once when the venv already has a tf2_msgs built from these sources.
 	bash resource/tf2_msgs/build_tf2_msgs.sh $(VENV)
 	@# setup.cfg puts console scripts where `ros2 run` looks (lib/<package>); put the CLI on the venv's PATH too.
 	ln -sf ../lib/multicam_ego_motion/ego-motion $(EGO)
-	@$(PY) -c 'import rclpy, cv2, filterpy, mcap, tf2_msgs.msg; print("environment ready:", cv2.__version__)'
+	@$(PY) -c 'import rclpy, cv2, filterpy, mcap, tf2_msgs.msg; from camera_pose_nodes import kernel; print("environment ready:", cv2.__version__, "quarter kernel:", kernel.selected())'
 	@touch $@
 
 run: $(READY)

@@ -16,6 +16,7 @@ weigh little along their ray and the long-baseline ones hold the pose.
 """
 import numpy as np
 
+from camera_pose_nodes import kernel
 from camera_pose_nodes.camera_model import projection_jacobian
 
 
@@ -82,6 +83,7 @@ class LandmarkMap:
         self.refine_factor = float(refine_factor)
         self.focal_px = float(focal_px)      # converts normalized errors to pixels
         self.sigma_n = float(pixel_sigma) / self.focal_px
+        self._native = kernel.use_native()    # triangulate in the native kernel (kernel.py)
         self.reset()
 
     _FIELDS = ('ids', 'X', 'C', 'parallax', 'on_floor')
@@ -189,6 +191,14 @@ class LandmarkMap:
         ids = np.asarray(ids, dtype=np.int64)
         if len(ids) == 0:
             return np.zeros(0, bool)
+        if self._native:
+            w = np.ones(np.shape(xy)[:2]) if view_weights is None else view_weights
+            X, C, par, ok = kernel.native.triangulate_checked(
+                R_oc, c_o, xy, w, self.sigma_n, self.min_depth, self.max_depth,
+                self.parallax_deg, self.focal_px, self.max_reproj_px)
+            if ok.any():
+                self._upsert(ids[ok], X[ok], C[ok], par[ok], on_floor=False)
+            return ok
         X = triangulate_views(R_oc, c_o, xy)
         rel = X[:, None, :] - c_o                                    # (N, V, 3)
         Xc = np.einsum('nvji,nvj->nvi', R_oc, rel)                   # R_oc^T (X - c)

@@ -9,10 +9,14 @@ P[:6, :6] is directly in the multicam_ego_motion.se3 convention.
 Measurement: normalized, undistorted image coordinates of tracked features whose landmark X
 (odom) is known, h = pi(R_cam^T (X - p_cam)) with T_odom_cam = T_odom_base T_base_cam. The
 number of measurements changes every frame, so H and R are built per update.
+
+Each step runs either here (numpy/filterpy: the reference) or in the native kernel
+(camera_pose_nodes.kernel selects it), on the same state: kf.x, kf.P, R_nom, stamp_ns.
 """
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
+from camera_pose_nodes import kernel
 from camera_pose_nodes.camera_model import projection_jacobian
 from multicam_ego_motion.se3 import make_T, R_to_rotvec, rotvec_to_R
 
@@ -33,6 +37,7 @@ class PoseEKF:
         self.init_pose_sigma = float(init_pose_sigma)
         self.init_twist_sigma = float(init_twist_sigma)
         self.kf = ExtendedKalmanFilter(dim_x=DIM, dim_z=2)
+        self._native = kernel.use_native()
         self.reset()
 
     # ----- state -------------------------------------------------------------------------
@@ -71,6 +76,15 @@ class PoseEKF:
         return bool(np.isfinite(self.kf.x).all() and np.isfinite(self.kf.P).all())
 
     # ----- internals ---------------------------------------------------------------------
+    def _native_state(self):
+        """(x, P, R_nom) as the native kernel's functions take them and give them back."""
+        return self.kf.x, self.kf.P, self.R_nom
+
+    def _set_native_state(self, x, P, R_nom):
+        self.kf.x = x.reshape(DIM, 1)
+        self.kf.P = P
+        self.R_nom = R_nom
+
     def _recentre(self):
         dth = self.kf.x[TH, 0]
         if np.any(dth != 0.0):
@@ -99,6 +113,10 @@ class PoseEKF:
         if dt <= 0.0:
             return   # out-of-order/duplicate stamp: never run the model backwards
         self.stamp_ns = int(stamp_ns)
+        if self._native:
+            self._set_native_state(*kernel.native.ekf_predict(
+                *self._native_state(), dt, self.accel_sigma, self.alpha_sigma))
+            return
         F = np.eye(DIM)
         F[P_, V_] = np.eye(3) * dt
         # dtheta (odom) integrates the body rate rotated into odom: R_nom w dt. Since
@@ -151,6 +169,13 @@ class PoseEKF:
         z_obs = np.asarray(z_obs, float).reshape(-1, 2)
         inl = np.zeros(len(X), bool)
         if len(X) == 0:
+            return inl
+        if self._native:
+            su, sv = np.broadcast_to(np.asarray(sigma_uv, float), (2,))
+            X_cov = None if X_cov is None else np.asarray(X_cov, float).reshape(-1, 3, 3)
+            *state, inl, _ = kernel.native.ekf_update_reprojection(
+                *self._native_state(), X, z_obs, su, sv, T_base_cam, gate_chi2, min_depth, X_cov)
+            self._set_native_state(*state)
             return inl
         uv, depth, H = self.project(X, T_base_cam)
         r = z_obs - uv
@@ -219,6 +244,11 @@ class PoseEKF:
         inl = np.zeros(len(c1), bool)
         if len(c1) == 0:
             return inl
+        if self._native:
+            *state, inl, _ = kernel.native.ekf_update_epipolar(
+                *self._native_state(), c1, r1, xy2, sigma, T_base_cam, gate_chi2, min_baseline)
+            self._set_native_state(*state)
+            return inl
         p = self.kf.x[P_, 0].copy()
         c2 = p + self.R_nom @ T_base_cam[:3, 3]
         # a short baseline leaves the epipolar line undefined (pure rotation, standing still)
@@ -263,6 +293,9 @@ class PoseEKF:
         P_tt' = P_tt - G P_pt + G C G^T, P_tp' = G C. During initialisation this is also
         what estimates the velocity from the sequence of fused poses."""
         T_odom_base = np.asarray(T_odom_base, float)
+        if self._native:
+            self._set_native_state(*kernel.native.ekf_set_pose(*self._native_state(), T_odom_base, cov6))
+            return
         C = 0.5 * (np.asarray(cov6, float) + np.asarray(cov6, float).T)
         P = self.kf.P
         delta = np.concatenate([T_odom_base[:3, 3] - self.kf.x[P_, 0],

@@ -18,6 +18,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Int64MultiArray
 
+from camera_pose_nodes import kernel
 from camera_pose_nodes.camera_model import intrinsics_from_msg
 from camera_pose_nodes.frame_schedule import FrameSchedule, ScheduleBook
 from camera_pose_nodes.image_conversion import image_msg_to_gray
@@ -105,7 +106,8 @@ class QuarterNode(Node):
                 self.create_subscription(msg_type, topic, callback, qos)
         self.info_sub = self.create_subscription(CameraInfo, self.camera.camera_info_topic, self.on_info, RELIABLE)
         self.poll_timer = self.create_timer(POLL_PERIOD_S, self.poll)
-        self.get_logger().info(f'{self.source}: waiting for {self.camera.image_topic}')
+        self.get_logger().info(f'{self.source}: waiting for {self.camera.image_topic} '
+                               f'({kernel.selected()} kernel)')
 
     # --- inputs -------------------------------------------------------------------------
     def on_info(self, msg: CameraInfo):

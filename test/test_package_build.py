@@ -22,10 +22,10 @@ ENTRY_POINTS = {
     'ego-motion': 'multicam_ego_motion.cli:main',
 }
 # Everything a checkout may hold that is not the package's source: venvs, build outputs
-# (including the tf2_msgs workspace), caches.
+# (including the tf2_msgs workspace and the native kernel built in place), caches.
 NOT_SOURCE = shutil.ignore_patterns(
     '.git', '.venv', 'build', 'install', 'log', 'out', '__pycache__', '*.egg-info',
-    '.pytest_cache')
+    '.pytest_cache', '*.so')
 
 
 def _colcon():
@@ -94,3 +94,20 @@ def test_entry_points_target_the_right_functions(install_prefix):
     installed = dict(
         (k.strip(), v.strip()) for k, _, v in (ln.partition('=') for ln in lines) if _)
     assert installed == ENTRY_POINTS
+
+
+def test_native_kernel_built_from_source_and_installed(install_prefix):
+    # The copy held no built extension (NOT_SOURCE): colcon compiled it, and the installed
+    # package imports it.
+    site = install_prefix / 'lib' / f'python{sys.version_info.major}.{sys.version_info.minor}' / 'site-packages'
+    built = sorted((site / 'camera_pose_nodes').glob('_quarter_kernels*.so'))
+    assert built, f'no native kernel in {site / "camera_pose_nodes"}'
+    code = ('import sys; sys.path.insert(0, sys.argv[1]); '
+            'from camera_pose_nodes import kernel; '
+            'print(kernel.native.__file__, kernel.selected())')
+    env = {k: v for k, v in os.environ.items() if k not in ('PYTHONPATH', 'EGO_MOTION_KERNEL')}
+    proc = subprocess.run([sys.executable, '-c', code, str(site)], capture_output=True, text=True,
+                          env=env, cwd=install_prefix, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    path, selected = proc.stdout.split()
+    assert path == str(built[0]) and selected == 'native'
