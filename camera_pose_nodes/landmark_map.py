@@ -249,4 +249,7 @@ class LandmarkMap:
 
     def keep_only(self, live_ids):
         """Landmarks of tracks that no longer exist are of no use to a tracking-only map."""
-        self._keep(np.isin(self.ids, np.asarray(live_ids, np.int64)))
+        _, r = self.rows(live_ids)
+        keep = np.zeros(len(self.ids), bool)
+        keep[r] = True
+        self._keep(keep)

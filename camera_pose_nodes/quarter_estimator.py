@@ -46,6 +46,14 @@ def _view_tables(max_views: int):
         distinct[m] = [1.0 if v == 0 or js[v] != js[v - 1] else 0.0 for v in range(len(js))]
     return idx, distinct
 
+def _members(a: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
+    """np.isin(a, sorted_set) for a sorted set, by binary search (isin sorts both)."""
+    if not len(sorted_set):
+        return np.zeros(a.shape, bool)
+    i = np.minimum(np.searchsorted(sorted_set, a), len(sorted_set) - 1)
+    return sorted_set[i] == a
+
+
 # name -> (default, description, min, max). The node declares its ROS parameters from this.
 PARAMETERS = {
     'min_features': (40, "extract new features when fewer are tracked (paper's Min)", 4, 1000),
@@ -328,7 +336,7 @@ class QuarterEstimator:
         # the oldest view with a fused pose (not the current one): the longest baseline, the
         # best-defined line
         ht = tr.hist_t[rows]
-        infused = (np.arange(H)[None, :] < (tr.hist_n[rows] - 1)[:, None]) & np.isin(ht, fs)
+        infused = (np.arange(H)[None, :] < (tr.hist_n[rows] - 1)[:, None]) & _members(ht, fs)
         found = infused.any(axis=1)
         rows, col = rows[found], np.argmax(infused[found], axis=1)
         slot = np.searchsorted(fs, tr.hist_t[rows, col])
@@ -411,7 +419,7 @@ class QuarterEstimator:
             return
         fs, fT, R_all, c_all = self._fused_arrays()
         # the views of each track that have a fused pose, in order: their columns first
-        infused = tr.views_used() & np.isin(tr.hist_t, fs)
+        infused = tr.views_used() & _members(tr.hist_t, fs)
         m = infused.sum(axis=1)
         rows = np.flatnonzero(m >= 2)
         if not len(rows):
@@ -482,11 +490,16 @@ class QuarterEstimator:
 
     def _forget_unused_poses(self):
         self.landmarks.keep_only(self.tracker.ids)
-        used = set(np.unique(self.tracker.hist_t[self.tracker.views_used()]).tolist())
-        latest = max(self.fused_poses)
-        for s in [s for s in self.fused_poses if s not in used and s != latest]:
-            del self.fused_poses[s]
-        self._fused_cache = None
+        fs, _, _, _ = self._fused_arrays()
+        seen = self.tracker.hist_t[self.tracker.views_used()]
+        slot = np.minimum(np.searchsorted(fs, seen), len(fs) - 1)
+        used = np.zeros(len(fs), bool)
+        used[slot[fs[slot] == seen]] = True
+        used[-1] = True                        # the latest stays (the next frame's prediction)
+        if not used.all():
+            for s in fs[~used].tolist():
+                del self.fused_poses[s]
+            self._fused_cache = None
 
     # ----- hand-over ---------------------------------------------------------------------
     def get_state(self) -> dict:
