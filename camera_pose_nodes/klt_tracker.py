@@ -204,8 +204,9 @@ class KLTTracker:
             self._keep(ok)
             self.pts = new[ok].astype(np.float32)
             self._append_views(stamp_ns)
-        crop = np.ascontiguousarray(crop)
-        self.prev_crop = self._cur_crop = crop.copy()
+        if crop.base is not None or not crop.flags.c_contiguous:
+            crop = crop.copy()      # kept as the next frame's reference: must not change under us
+        self.prev_crop = self._cur_crop = crop
         return len(self.ids)
 
     # ----- extract -----------------------------------------------------------------------
