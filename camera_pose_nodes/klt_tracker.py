@@ -36,6 +36,9 @@ class KLTConfig:
     parallel_chunks: bool = False # run chunks/cells on a thread pool
 
 
+MIN_PREDICTED_PX = 2.0   # a predicted motion shorter than this is left to the search
+
+
 class Flow(NamedTuple):
     """Where the tracks `ids` went in a new crop: positions (full-image px) and kept flags."""
     ids: np.ndarray
@@ -147,10 +150,13 @@ class KLTTracker:
         return max(1, math.ceil(n_points / max(1, self.cfg.min_features)))
 
     # ----- track -------------------------------------------------------------------------
-    def flow(self, crop: np.ndarray) -> Optional[Flow]:
+    def flow(self, crop: np.ndarray, predict=None) -> Optional[Flow]:
         """Lucas-Kanade flow of the current tracks from the previous crop into `crop`, without
         changing the tracker: a quarter computes it while it still waits for the previous
-        frame's fused pose (pipelining), and track() applies it to the tracks that are left."""
+        frame's fused pose (pipelining), and track() applies it to the tracks that are left.
+        `predict`: a pair of functions (forward, backward) mapping full-image pixels (N, 2)
+        to where they should be in the new / previous crop (the camera's rotation): the
+        search starts there instead of at zero flow (see quarter_estimator)."""
         if self.prev_crop is None or not len(self.ids):
             return None
         # OpenCV 5's Python binding no longer accepts prebuilt pyramids here, so each call
@@ -162,10 +168,24 @@ class KLTTracker:
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, self.cfg.iterations, self.cfg.epsilon_px)
         prev, lv = self.prev_crop, self.cfg.pyramid_levels
 
+        def guess(fn, pts):
+            # a prediction only where it is finite; else zero flow as without one
+            p = pts.reshape(-1, 2)
+            g = fn(p + off) - off
+            # small predicted motions start at zero flow, as without a prediction
+            bad = ~np.all(np.isfinite(g), axis=1) | (np.abs(g - p).max(axis=1) < MIN_PREDICTED_PX)
+            g[bad] = p[bad]
+            return g.reshape(-1, 1, 2).astype(np.float32)
+
         def lk(chunk):
             a = p0[chunk]
-            b, st1, _ = cv2.calcOpticalFlowPyrLK(prev, crop, a, None, winSize=(w, w),
-                                                 maxLevel=lv, criteria=crit)
+            if predict is None:
+                b, st1, _ = cv2.calcOpticalFlowPyrLK(prev, crop, a, None, winSize=(w, w),
+                                                     maxLevel=lv, criteria=crit)
+            else:
+                b, st1, _ = cv2.calcOpticalFlowPyrLK(prev, crop, a, guess(predict[0], a),
+                                                     winSize=(w, w), maxLevel=lv, criteria=crit,
+                                                     flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
             new = b.reshape(-1, 2) + off
             # Only tracks that can still be kept are checked backwards (a quarter of them
             # were lost or left the quarter; each point is tracked on its own, so leaving
@@ -173,9 +193,16 @@ class KLTTracker:
             ok = (st1.ravel() == 1) & np.all(np.isfinite(new), axis=1)
             ok &= self.region.owns(new)       # left the quarter: the neighbour takes over
             if ok.any():
-                back, st2, _ = cv2.calcOpticalFlowPyrLK(crop, prev, b[ok], None,
-                                                        winSize=(w, w), maxLevel=lv,
-                                                        criteria=crit)
+                # Backwards from the new position's own prediction, never from the start
+                # point: a search that starts at the answer would pass a wrong track.
+                if predict is None:
+                    back, st2, _ = cv2.calcOpticalFlowPyrLK(crop, prev, b[ok], None,
+                                                            winSize=(w, w), maxLevel=lv,
+                                                            criteria=crit)
+                else:
+                    back, st2, _ = cv2.calcOpticalFlowPyrLK(
+                        crop, prev, b[ok], guess(predict[1], b[ok]), winSize=(w, w),
+                        maxLevel=lv, criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
                 fb = np.linalg.norm((back - a[ok]).reshape(-1, 2), axis=1)
                 ok[ok] = (st2.ravel() == 1) & (fb < self.cfg.fb_threshold_px)
             return new, ok
@@ -188,12 +215,14 @@ class KLTTracker:
         return Flow(self.ids.copy(), np.concatenate([r[0] for r in res]),
                     np.concatenate([r[1] for r in res]))
 
-    def track(self, stamp_ns: int, crop: np.ndarray, flow: Optional[Flow] = None) -> int:
+    def track(self, stamp_ns: int, crop: np.ndarray, flow: Optional[Flow] = None,
+              predict=None) -> int:
         """Track existing features from the previous crop into `crop`; returns tracks kept.
         `flow`: this crop's flow() computed earlier; tracks dropped since are skipped (each
-        point is tracked on its own, so the result is the same as tracking now)."""
+        point is tracked on its own, so the result is the same as tracking now).
+        `predict`: as for flow()."""
         if flow is None:
-            flow = self.flow(crop)
+            flow = self.flow(crop, predict)
         if flow is not None and len(self.ids):
             # The tracks left now are a subsequence of those the flow was computed for (ids
             # only grow, so both are sorted).

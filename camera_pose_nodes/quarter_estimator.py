@@ -26,11 +26,14 @@ from camera_pose_nodes.pose_estimate import PoseEstimate, UNINFORMATIVE_VARIANCE
 from camera_pose_nodes.quarter_region import QuarterRegion
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.rig import CameraMount
+from multicam_ego_motion.se3 import rotvec_to_R
 
-STATE_VERSION = 5     # 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays
+STATE_VERSION = 6     # 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays; 6: motion
 STAGES = ('acquire', 'extract', 'track', 'pose', 'structure')
 _ROTATION_ONLY_POSITION_VARIANCE = 1.0e2   # m^2: 'position not measured', still < UNINFORMATIVE
 _TRIANGULATION_VIEWS = 5     # views per DLT: oldest, newest and evenly spaced between
+_PREDICT_MAX_RATE_STD = 0.5  # rad/s: a less certain angular rate does not steer the tracker
+_PREDICT_MAX_DT_S = 1.0      # nor does one from longer ago
 
 
 @lru_cache(maxsize=None)
@@ -75,6 +78,7 @@ PARAMETERS = {
     'gate_chi2': (9.21, 'per-feature Mahalanobis gate (chi-square, 2 dof; 9.21 = 99 %)', 1.0, 100.0),
     'accel_sigma': (2.0, 'process noise: white linear acceleration (m/s^2/sqrt(Hz))', 1e-4, 100.0),
     'alpha_sigma': (2.0, 'process noise: white angular acceleration (rad/s^2/sqrt(Hz))', 1e-4, 100.0),
+    'predict_flow': (True, "start each feature's Lucas-Kanade search where the camera's rotation (this quarter's angular rate) moves it, not at zero flow", None, None),
     'epipolar': (True, 'also measure tracks without a landmark by their epipolar line to an earlier fused view', None, None),
     'epipolar_min_baseline': (0.05, 'shortest camera baseline (m) for an epipolar measurement', 0.001, 10.0),
     'min_inliers': (6, 'inliers needed to report tracking (else lost)', 3, 1000),
@@ -110,6 +114,7 @@ class QuarterParams:
     gate_chi2: float = PARAMETERS['gate_chi2'][0]
     accel_sigma: float = PARAMETERS['accel_sigma'][0]
     alpha_sigma: float = PARAMETERS['alpha_sigma'][0]
+    predict_flow: bool = PARAMETERS['predict_flow'][0]
     epipolar: bool = PARAMETERS['epipolar'][0]
     epipolar_min_baseline: float = PARAMETERS['epipolar_min_baseline'][0]
     min_inliers: int = PARAMETERS['min_inliers'][0]
@@ -187,6 +192,9 @@ class QuarterEstimator:
         self.structure_ms = 0.0
         self.extract_ms = 0.0
         self._prefetched = None    # (stamp, tracked-from crop, crop, flow, stage ms) of the next frame
+        # (stamp, body angular rate) of the last estimate: steers the next frame's tracking.
+        # Kept as it was then, so a flow computed early (prefetch) or late is the same.
+        self._motion = None
         self._extract_due = None   # stamp whose new features are still to be extracted
 
     def close(self):
@@ -211,7 +219,7 @@ class QuarterEstimator:
         t0 = time.thread_time()
         crop = self._crop(gray)
         t1 = time.thread_time()
-        flow = self.tracker.flow(crop)
+        flow = self.tracker.flow(crop, self._flow_predictor(stamp_ns))
         self._prefetched = (int(stamp_ns), self.tracker.prev_crop, crop, flow,
                             {'acquire': (t1 - t0) * 1e3, 'track': (time.thread_time() - t1) * 1e3})
 
@@ -242,7 +250,7 @@ class QuarterEstimator:
         t1 = time.thread_time()
         ms['acquire'] += (t1 - t0) * 1e3
 
-        self.tracker.track(stamp_ns, crop, flow)
+        self.tracker.track(stamp_ns, crop, flow, self._flow_predictor(stamp_ns))
         t2 = time.thread_time()
         ms['track'] += (t2 - t1) * 1e3
 
@@ -290,6 +298,7 @@ class QuarterEstimator:
             state = 'initializing'
         else:
             state = 'lost'
+        self._remember_motion(stamp_ns, state)
         kw = dict(n_features=len(self.tracker.ids), n_landmarks=int(has.sum()),
                   n_floor=self.landmarks.floor_count(self.tracker.ids[has]),
                   n_inliers=n_inliers + n_epipolar, stage_ms=ms)
@@ -297,6 +306,37 @@ class QuarterEstimator:
             return uninformative(stamp_ns, self.ekf.T_odom_base, self.source, state, **kw)
         return PoseEstimate(stamp_ns, self.ekf.T_odom_base, cov,
                             source=self.source, state=state, **kw)
+
+    def _remember_motion(self, stamp_ns, state):
+        _, w, cov = self.ekf.twist
+        rate_std = math.sqrt(max(float(np.max(np.diag(cov)[3:])), 0.0))
+        ok = state == 'tracking' and np.all(np.isfinite(w)) and rate_std < _PREDICT_MAX_RATE_STD
+        self._motion = (int(stamp_ns), w.copy()) if ok and self.params.predict_flow else None
+
+    def _flow_predictor(self, stamp_ns):
+        """(forward, backward) pixel maps of the camera's rotation from the last estimate to
+        `stamp_ns`, or None. Why: in a turn the features move tens of pixels a frame and
+        Lucas-Kanade, starting from zero flow, iterated to its limit on every pyramid level
+        (tracking took twice its straight-line CPU in the loop's turns, at 30 Hz the graph fell
+        behind there); from the rotation's prediction it converges in a few steps. The
+        translation is left to the search (it moves near points only)."""
+        if self._motion is None:
+            return None
+        dt = (int(stamp_ns) - self._motion[0]) * 1e-9
+        if not 0.0 < dt <= _PREDICT_MAX_DT_S:
+            return None
+        R_bc = self.T_base_cam[:3, :3]
+        # directions in camera 1 -> camera 2: R_bc^T exp(-[w] dt) R_bc (w in the body frame)
+        R21 = R_bc.T @ rotvec_to_R(-self._motion[1] * dt) @ R_bc
+        intr = self.intrinsics
+
+        def rotate(R):
+            def apply(px):
+                d = np.column_stack([intr.undistort_points(px), np.ones(len(px))]) @ R.T
+                z = np.where(d[:, 2] > 1e-6, d[:, 2], np.nan)       # behind: no prediction
+                return intr.project(d[:, :2] / z[:, None])
+            return apply
+        return rotate(R21), rotate(R21.T)
 
     def extraction_due(self) -> bool:
         return self._extract_due is not None
@@ -511,7 +551,8 @@ class QuarterEstimator:
                 'ekf': self.ekf.get_state(), 'tracker': self.tracker.get_state(),
                 'landmarks': self.landmarks.get_state(),
                 'fused_poses': {k: v.copy() for k, v in self.fused_poses.items()},
-                'structure_ms': self.structure_ms, 'extract_ms': self.extract_ms}
+                'structure_ms': self.structure_ms, 'extract_ms': self.extract_ms,
+                'motion': None if self._motion is None else (self._motion[0], self._motion[1].copy())}
 
     def set_state(self, s: dict):
         if s.get('version') != STATE_VERSION:
@@ -529,5 +570,7 @@ class QuarterEstimator:
         self._fused_cache = None
         self.structure_ms = float(s['structure_ms'])
         self.extract_ms = float(s['extract_ms'])
+        m = s['motion']
+        self._motion = None if m is None else (int(m[0]), np.array(m[1], float))
         self._prefetched = None
         self._extract_due = None
