@@ -1,13 +1,16 @@
 """`ego-motion`: the one command a user runs. Subcommands live in their own modules.
 
 Each subcommand module exposes `configure_parser(parser)` and `run(args) -> int`. Bad input
-raises UserError, printed here as one line with a non-zero exit and no traceback.
+raises UserError, printed here as one line with a non-zero exit and no traceback. SIGINT,
+SIGTERM and SIGHUP end any subcommand cleanly (interrupt.py): its `finally` clauses close
+what it wrote, then one line says what was interrupted and what was kept, exit 128 + signal.
 """
 import argparse
 import importlib
 import os
 import sys
 
+from multicam_ego_motion import interrupt
 from multicam_ego_motion.errors import UserError
 
 SUBCOMMANDS = {
@@ -21,6 +24,7 @@ SUBCOMMANDS = {
     'ablation': ('multicam_ego_motion.ablation', 'fused vs single cameras vs single quarters on a bag'),
     'matrix': ('multicam_ego_motion.bench.accuracy_matrix', 'accuracy matrix: seeds x scenarios through the sequential pipeline'),
     'profile': ('multicam_ego_motion.bench.profile_table', 'where the CPU goes: stage x kind of work, per frame'),
+    'reindex': ('multicam_ego_motion.bag.reindex', 'rebuild an unfinished bag (writer killed) from its complete chunks'),
 }
 
 
@@ -59,13 +63,22 @@ def main(argv=None) -> int:
     if getattr(args, '_missing', False):
         print(f'ego-motion: error: {args.command} is not available in this build', file=sys.stderr)
         return 2
-    try:
-        return int(importlib.import_module(args._module).run(args) or 0)
-    except UserError as e:
-        print(f'ego-motion: error: {e}', file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
+    with interrupt.handling():
+        try:
+            code = int(importlib.import_module(args._module).run(args) or 0)
+        except interrupt.Interrupted as e:
+            print(interrupt.line('ego-motion', args.command, e.signum), file=sys.stderr, flush=True)
+            return e.exit_code
+        except UserError as e:
+            print(f'ego-motion: error: {e}', file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:     # a SIGINT ignored at start, raised by someone else
+            return 130
+        # A signal during a closing that then ended another way: still say so.
+        if interrupt.received() is not None:
+            print(interrupt.line('ego-motion', args.command), file=sys.stderr, flush=True)
+            return 128 + interrupt.received()
+        return code
 
 
 if __name__ == '__main__':

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict
 
+from multicam_ego_motion import interrupt
 from multicam_ego_motion.errors import UserError
 
 DEFAULT_PARAMS = Path(__file__).resolve().parent.parent / 'config' / 'params.yaml'
@@ -204,40 +205,46 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
                               overrides=graph_overrides(lockstep, use_wheel), log_dir=out / 'logs',
                               rebalance=rebalance, migrate_every=migrate_every, logger=logger)
     # No rclpy signal handlers: on Ctrl-C they invalidate the context under the spinning
-    # thread; Python's KeyboardInterrupt reaches the finally below, which closes in order.
+    # thread. SIGINT, SIGTERM and SIGHUP raise interrupt.Interrupted here (the command line
+    # installs interrupt.handling()), which reaches the finally below: it closes in order.
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
-    # Player, recorder and coordinator share this node: ~30 wake-ups a frame, each walks the
-    # wait set (LeanNode: without the QoS event handlers of its ~25 publishers/subscriptions).
-    node = LeanNode('ego_motion_replay')
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
     stopping = threading.Event()
-
-    def spin():
-        while not stopping.is_set():
-            try:
-                executor.spin_once(timeout_sec=0.1)
-            except InvalidHandle:
-                # An entity destroyed by its owner while in the wait set (the player removes
-                # its publishers when it stops, also on an error): the next wait set is
-                # built without it.
-                continue
-            except Exception:
-                # Tearing down (Ctrl-C, end of run) can invalidate more under the wait set;
-                # anything raised before that is a real error.
-                if not stopping.is_set():
-                    raise
-
-    spinner = threading.Thread(target=spin, daemon=True, name='spin')
-    recorder = BagRecorder(out / 'output', topics=record_topics or recorded_topics(rig))
+    node = executor = spinner = recorder = player = None
     received = {}
-    node.create_subscription(Odometry, '/odom', lambda data: received.setdefault(
-        header_stamp_ns(data), time.monotonic()), RELIABLE, raw=True)
     t_start = time.monotonic()
     result = None
     peak = 0
     wall = 0.0
+    out_bag = out / 'output'
+    interrupt.note(progress=lambda: 'while starting the graph', kept='nothing recorded yet')
     try:
+        with interrupt.deferred():   # every resource below exists, or the finally sees None
+            # Player, recorder and coordinator share this node: ~30 wake-ups a frame, each
+            # walks the wait set (LeanNode: without the QoS event handlers of its ~25
+            # publishers/subscriptions).
+            node = LeanNode('ego_motion_replay')
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+
+            def spin():
+                while not stopping.is_set():
+                    try:
+                        executor.spin_once(timeout_sec=0.1)
+                    except InvalidHandle:
+                        # An entity destroyed by its owner while in the wait set (the player
+                        # removes its publishers when it stops, also on an error): the next
+                        # wait set is built without it.
+                        continue
+                    except Exception:
+                        # Tearing down (a signal, end of run) can invalidate more under the
+                        # wait set; anything raised before that is a real error.
+                        if not stopping.is_set():
+                            raise
+
+            spinner = threading.Thread(target=spin, daemon=True, name='spin')
+            recorder = BagRecorder(out_bag, topics=record_topics or recorded_topics(rig))
+            node.create_subscription(Odometry, '/odom', lambda data: received.setdefault(
+                header_stamp_ns(data), time.monotonic()), RELIABLE, raw=True)
         coordinator.start()
         # Rate mode has no between-frames moment: rebalancing runs on a timer there.
         coordinator.attach_ros(node, rate_mode_period_s=None if lockstep else 1.0)
@@ -251,6 +258,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
             start_offset_s=start_offset, duration_s=duration,
             between_frames=coordinator.between_frames if lockstep else None,
             health_check=coordinator.check_alive))
+        interrupt.note(progress=player.position)
         coordinator.link_waiter = make_link_waiter(rig, player)
         coordinator.on_restored.append(lambda w: player.request_republish())
         workers = coordinator.worker_pids()
@@ -262,17 +270,28 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
         time.sleep(0.5 if lockstep else 1.0)  # let the last estimates reach the recorder
         coordinator.check_alive()
         peak = peak_rss_kb(coordinator.worker_pids() + [os.getpid()])
+        interrupt.note(progress=lambda: 'after the whole bag was played')
     finally:
-        # Stop the spinning thread before the recorder destroys its subscriptions: spinning
-        # over destroyed entities raises in that thread (InvalidHandle).
-        stopping.set()
-        executor.shutdown()
-        if spinner.is_alive():
-            spinner.join(timeout=5.0)
-        counts = recorder.close()
-        coordinator.stop()
-        node.destroy_node()
-        rclpy.try_shutdown()
+        # Closing is never cut short: a signal that comes meanwhile (at the end of a run) is
+        # held until everything is closed, later ones are ignored. Stop the spinning thread
+        # before the recorder destroys its subscriptions: spinning over destroyed entities
+        # raises in that thread (InvalidHandle). The recorder takes what is still queued,
+        # then closes.
+        with interrupt.deferred():
+            stopping.set()
+            if executor is not None:
+                executor.shutdown()
+            if spinner is not None and spinner.is_alive():
+                spinner.join(timeout=5.0)
+            counts = recorder.close() if recorder is not None else {}
+            if recorder is not None:
+                interrupt.note(kept=f'kept {out_bag}: {counts.get("/odom", 0)} /odom, '
+                                    f'{sum(counts.values())} messages in all, closed with its '
+                                    'summary and metadata.yaml')
+            coordinator.stop()
+            if node is not None:
+                node.destroy_node()
+            rclpy.try_shutdown()
     cpu = (cpu1[0] - cpu0[0], cpu1[1] - cpu0[1]) if result is not None else (0.0, 0.0)
     return GraphRun(counts, result, wall, time.monotonic() - t_start, received, peak, coordinator, *cpu)
 

@@ -230,7 +230,7 @@ def test_bad_input_is_one_line_error(case, bag, tmp_path):
     elif case == 'corrupt bag':
         corrupt = tmp_path / 'corrupt.mcap'
         corrupt.write_bytes(b'\x89MCAP0\r\n' + b'garbage' * 100)
-        args, expect = [corrupt], 'truncated or corrupt'
+        args, expect = [corrupt], 'is corrupt'
     else:
         args, expect = [bag, '--topics', '/nope'], 'has no topic /nope'
     proc = run_cli('play', *args, timeout=60)

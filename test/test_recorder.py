@@ -1,4 +1,5 @@
-"""The recorder: after SIGINT or SIGTERM the bag is complete and holds every message received."""
+"""The recorder: after SIGINT, SIGTERM or SIGHUP the bag is complete and holds every message
+received; the command says what it kept in one line and exits with 128 + the signal."""
 import signal
 import time
 
@@ -22,7 +23,8 @@ def _wait(predicate, timeout_s):
     return False
 
 
-@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM, signal.SIGHUP],
+                         ids=['SIGINT', 'SIGTERM', 'SIGHUP'])
 def test_signal_leaves_a_complete_bag(sig, tmp_path, rclpy_context):
     talker = SpinningNode('talker')
     reliable = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
@@ -47,7 +49,7 @@ def test_signal_leaves_a_complete_bag(sig, tmp_path, rclpy_context):
         if rec.poll() is None:
             rec.kill()
         talker.close()
-    assert rec.returncode == 0, err
+    assert rec.returncode == 128 + sig, err
     with AnyReader([out]) as reader:
         got = {}
         for conn, _, raw in reader.messages():
@@ -56,5 +58,8 @@ def test_signal_leaves_a_complete_bag(sig, tmp_path, rclpy_context):
     received_poses = len(got.get('/pose', []))
     assert received_poses >= N * 0.8  # best effort may drop a few, not most
     assert [m.pose.position.x for m in got['/pose']] == sorted(m.pose.position.x for m in got['/pose'])
-    assert f'recorded {N + received_poses} messages' in err
-    assert '/chatter 50' in err
+    summary = [l for l in err.splitlines() if l.startswith('ego-motion: ')]
+    assert len(summary) == 1 and 'Traceback' not in err, err
+    assert summary[0].startswith(f'ego-motion: record interrupted by {signal.Signals(sig).name} after '), err
+    assert f'kept {out}: recorded {N + received_poses} messages' in summary[0]
+    assert '/chatter 50' in summary[0] and 'closed with its summary and metadata.yaml' in summary[0]

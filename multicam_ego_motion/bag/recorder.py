@@ -9,11 +9,13 @@ keeps adding every new topic (hidden `_` topics excepted). The subscription QoS 
 publishers: reliable when every publisher is reliable, best effort as soon as one is
 (sensor-data cameras), transient local for latched topics such as /tf_static.
 
-Ending: SIGINT or SIGTERM closes the bag (summary, metadata.yaml) and it holds every message
-received until then. Every second the writer also finishes its current chunk, hands it to
-the OS and rewrites metadata.yaml, so a hard kill (SIGKILL, OOM) loses at most the last
-second: the .mcap then has no summary and footer and is not readable as is (our reader says
-"truncated or corrupt"), but its finished chunks are intact and `mcap recover` rebuilds it.
+Ending: SIGINT, SIGTERM or SIGHUP (interrupt.py) closes the bag (summary, metadata.yaml) and
+it holds every message received until then: closing first takes what is still waiting in
+the subscriptions' queues. The command then exits with 128 + the signal, after one line
+saying how many messages it kept. Every second the writer also finishes its current chunk,
+hands it to the OS and rewrites metadata.yaml, so a hard kill (SIGKILL, OOM) loses at most
+the last second: the .mcap then has no summary and footer (our readers call it unfinished),
+but its finished chunks are intact and `ego-motion reindex BAG` rebuilds the bag from them.
 
 Python API (used in-process by `replay`)::
 
@@ -22,21 +24,22 @@ Python API (used in-process by `replay`)::
     recorder.wait_for_topics(10.0)   # optional: until every named topic is subscribed
     ...                              # someone spins `node`
     counts = recorder.close()        # -> {topic: messages written}; bag complete
+                                     # (call it once nothing spins `node` any more)
 
 `attach` does not spin: the caller's executor does. Callbacks may run on several threads
 (MultiThreadedExecutor); writes are serialized by a lock.
 """
-import signal
-import sys
 import threading
 import time
 from typing import Dict, Iterable, Optional
 
+from multicam_ego_motion import interrupt
 from multicam_ego_motion.bag.rosbag2_writer import Rosbag2Writer
 from multicam_ego_motion.errors import UserError
 
 DISCOVERY_PERIOD_S = 0.2
 FLUSH_PERIOD_S = 1.0
+DRAIN_LIMIT = 10_000   # messages taken per subscription when closing (the graph may still publish)
 
 
 def is_hidden(topic: str) -> bool:
@@ -128,11 +131,35 @@ class BagRecorder:
         with self._lock:
             return self.writer.message_counts()
 
+    def drain(self) -> int:
+        """Write what the subscriptions have received but no callback has taken yet (the
+        executor was stopped by a signal or the end of a run); returns how many. Only while
+        nothing else spins the node."""
+        taken = 0
+        for topic, sub in list(self._subscriptions.items()):
+            if sub is None:
+                continue
+            for _ in range(DRAIN_LIMIT):
+                try:
+                    with sub.handle:
+                        info = sub.handle.take_message(sub.msg_type, sub.raw)
+                except Exception:   # destroyed, or the context is gone: nothing more to take
+                    break
+                if info is None:
+                    break
+                sub.callback(info[0])
+                taken += 1
+        return taken
+
     def close(self) -> Dict[str, int]:
-        """Stop recording and finish the bag; returns messages written per topic."""
+        """Stop recording and finish the bag (summary, metadata.yaml); returns messages
+        written per topic. Messages still queued in the subscriptions are written first."""
         with self._lock:
             if self._closed:
                 return self.writer.message_counts()
+        if self._node is not None:
+            self.drain()
+        with self._lock:
             self._closed = True
             self.writer.close()
         if self._node is not None:
@@ -163,27 +190,30 @@ def run(args) -> int:
     from rclpy.parameter import Parameter
     from rclpy.signals import SignalHandlerOptions
 
-    # Our own handlers: a signal only sets a flag, the loop below ends and closes the bag.
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        node = Node('ego_motion_recorder', parameter_overrides=[
-            Parameter('use_sim_time', value=args.use_sim_time)])
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        recorder.attach(node)
+    # A signal (interrupt.py) only ends the loop below: it never cuts a write in half (the
+    # callbacks run in this thread); the bag is closed, then Interrupted is raised and the
+    # command line prints what was kept.
+    t0 = time.monotonic()
+    interrupt.note(progress=lambda: f'after {time.monotonic() - t0:.1f} s of recording')
+    with interrupt.deferred():
+        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         try:
-            while not stop.is_set():
-                executor.spin_once(timeout_sec=0.1)
+            node = Node('ego_motion_recorder', parameter_overrides=[
+                Parameter('use_sim_time', value=args.use_sim_time)])
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            recorder.attach(node)
+            try:
+                while not interrupt.requested():
+                    executor.spin_once(timeout_sec=0.1)
+            finally:
+                executor.shutdown(timeout_sec=0)
+                recorder.close()
+                node.destroy_node()
         finally:
-            counts = recorder.close()
-            executor.shutdown(timeout_sec=0)
-            node.destroy_node()
-    finally:
-        rclpy.try_shutdown()
-    total = sum(counts.values())
-    print(f'recorded {total} messages into {args.out}: ' +
-          ', '.join(f'{t} {n}' for t, n in sorted(counts.items())), file=sys.stderr)
+            counts = recorder.close()     # once only; also when the node never came up
+            rclpy.try_shutdown()
+            interrupt.note(kept=f'kept {args.out}: recorded {sum(counts.values())} messages ('
+                           + (', '.join(f'{t} {n}' for t, n in sorted(counts.items())) or 'none')
+                           + '), closed with its summary and metadata.yaml')
     return 0

@@ -1,13 +1,23 @@
 """Read a rosbag2 bag with MCAP storage (a folder with metadata.yaml, or a bare .mcap file).
 
 Every way a bag can be unreadable ends in a UserError that names the bag and the problem.
+Two kinds are told apart (`scan_mcap`):
+
+* unfinished: the file is MCAP from its start up to where it stops, but it has no footer (and
+  so no summary): its writer was killed before closing it (SIGKILL, OOM, power cut), or the
+  file was cut short. The message names `ego-motion reindex BAG`, which rebuilds it from its
+  complete chunks.
+* corrupt: anything else (no MCAP magic, an invalid record, data after the footer, a damaged
+  summary or chunk).
 """
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
 import zstandard
 from mcap.exceptions import McapError
+from mcap.opcode import Opcode
 from mcap.reader import make_reader
 from rclpy.serialization import deserialize_message
 
@@ -55,14 +65,90 @@ def _mcap_files(path: Path):
 
 
 # A damaged chunk fails in its decompressor (zstandard.ZstdError; lz4 raises RuntimeError)
-# or, with CRCs checked, in mcap itself: all of them mean "this bag is damaged".
+# or, with CRCs checked, in mcap itself (struct.error: a record shorter than its fields):
+# all of them mean "this bag is damaged".
 _CORRUPT = (McapError, ValueError, EOFError, OSError, KeyError, IndexError, MemoryError,
-            zstandard.ZstdError, RuntimeError)
+            zstandard.ZstdError, RuntimeError, struct.error)
 
 
-def _corrupt(path, e):
+MCAP_MAGIC = b'\x89MCAP0\r\n'
+_OPCODES = {int(o) for o in Opcode}
+
+
+@dataclass
+class McapScan:
+    """What the records of an .mcap file say about its state (no record is decoded)."""
+    state: str            # 'complete' (ends with footer and magic), 'unfinished', 'corrupt'
+    valid_end: int        # byte offset after the last whole, valid record
+    records: int          # whole, valid records (the header included)
+    reason: str           # for unfinished and corrupt: where and how the file stops
+
+
+def scan_mcap(path) -> McapScan:
+    """Walk the record headers (opcode, length) of an .mcap file from its start: cheap (9
+    bytes read per record), and enough to tell an unfinished file from a corrupt one."""
+    path = Path(path)
+    size = path.stat().st_size
+    with open(path, 'rb') as fh:
+        magic = fh.read(len(MCAP_MAGIC))
+        if magic != MCAP_MAGIC:
+            if MCAP_MAGIC.startswith(magic):
+                return McapScan('unfinished', 0, 0, f'it ends after {size} bytes, inside the MCAP magic')
+            return McapScan('corrupt', 0, 0, 'it does not start with the MCAP magic')
+        offset, records = len(MCAP_MAGIC), 0
+        while True:
+            fh.seek(offset)
+            head = fh.read(9)
+            if not head:
+                return McapScan('unfinished', offset, records,
+                                f'it ends after {records} whole records (byte {offset}), without a footer')
+            if len(head) < 9:
+                return McapScan('unfinished', offset, records,
+                                f'it ends inside a record header at byte {offset}, without a footer')
+            opcode, length = struct.unpack('<BQ', head)
+            if opcode not in _OPCODES or (records == 0 and opcode != Opcode.HEADER):
+                return McapScan('corrupt', offset, records,
+                                f'invalid record (opcode 0x{opcode:02x}) at byte {offset}')
+            end = offset + 9 + length
+            if end > size:
+                return McapScan('unfinished', offset, records,
+                                f'it ends inside a {Opcode(opcode).name.lower()} record at byte '
+                                f'{offset} ({size - offset} of its {9 + length} bytes), without a footer')
+            records += 1
+            if opcode == Opcode.FOOTER:
+                fh.seek(end)
+                tail = fh.read(len(MCAP_MAGIC) + 1)
+                if tail == MCAP_MAGIC:
+                    return McapScan('complete', end, records, '')
+                if len(tail) < len(MCAP_MAGIC) and MCAP_MAGIC.startswith(tail):
+                    return McapScan('unfinished', end, records, 'it ends inside its closing MCAP magic')
+                return McapScan('corrupt', end, records, f'unexpected bytes after the footer (byte {end})')
+            offset = end
+
+
+def unfinished_error(bag, f, reason):
+    return UserError(f'bag {f} is unfinished: {reason} (its writer was stopped before closing it, '
+                     f'or the file was cut short); `ego-motion reindex {bag}` rebuilds it from its '
+                     'complete chunks')
+
+
+def _unreadable(bag, f, e=None):
+    """The error for a file whose summary cannot be read: unfinished or corrupt."""
+    try:
+        scan = scan_mcap(f)
+    except OSError as oe:
+        return UserError(f'bag {f} cannot be read ({oe})')
+    if scan.state == 'unfinished':
+        return unfinished_error(bag, f, scan.reason)
+    if e is None:   # complete, with a footer, but written without a summary
+        return UserError(f'bag {f} has no MCAP summary (index); `ego-motion reindex {bag}` builds one')
+    return _corrupt(f, e, scan.reason if scan.state == 'corrupt' else '')
+
+
+def _corrupt(path, e, where=''):
     what = type(e).__name__
-    return UserError(f'bag {path} is truncated or corrupt ({what}: {e})'.rstrip())
+    detail = f'{what}: {e}'.rstrip().rstrip(':')
+    return UserError(f'bag {path} is corrupt ({where + "; " if where else ""}{detail})')
 
 
 class Rosbag2Reader:
@@ -80,10 +166,9 @@ class Rosbag2Reader:
                 with open(f, 'rb') as stream:
                     summary = make_reader(stream).get_summary()
             except _CORRUPT as e:
-                raise _corrupt(f, e) from None
+                raise _unreadable(self.path, f, e) from None
             if summary is None:
-                raise UserError(f'bag {f} is truncated or corrupt (no MCAP summary: '
-                                'was the writer killed before closing?)')
+                raise _unreadable(self.path, f)
             for cid, ch in summary.channels.items():
                 schema = summary.schemas.get(ch.schema_id)
                 self.topics[ch.topic] = schema.name if schema else ''

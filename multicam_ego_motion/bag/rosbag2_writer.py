@@ -4,12 +4,15 @@ Messages are serialized to CDR by rclpy (the rmw's own serializer), so what land
 is byte-for-byte what a ROS 2 subscriber receives.
 """
 import os
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Dict, List, Optional, Tuple
 
 import yaml
 from mcap.writer import CompressionType, Writer
 from rclpy.serialization import serialize_message
 
+from multicam_ego_motion import interrupt
 from multicam_ego_motion.bag.message_types import message_definition, typename_of
 from multicam_ego_motion.errors import UserError
 
@@ -17,6 +20,56 @@ from multicam_ego_motion.errors import UserError
 # rewrites metadata.yaml every second, and the pure-Python one took ~12 ms of the replay
 # process's CPU for a 25-topic bag.
 _SAFE_DUMPER = getattr(yaml, 'CSafeDumper', yaml.SafeDumper)
+
+
+@dataclass
+class FileStats:
+    """What metadata.yaml says about one .mcap file of a bag."""
+    path: str                                    # relative to the bag folder
+    topics: Dict[str, Tuple[str, int]]           # name -> (type, message count)
+    first_ns: Optional[int] = None               # log time of the first and last message
+    last_ns: Optional[int] = None
+
+
+def write_metadata(folder, files: List[FileStats]):
+    """Write (atomically: a reader never sees half of it) the rosbag2 metadata.yaml of a bag
+    made of `files`, in the format rosbag2 itself writes (version 8, storage mcap)."""
+    folder = Path(folder)
+
+    def span(first, last):
+        return (first or 0), ((last - first) if first is not None else 0)
+
+    firsts = [f.first_ns for f in files if f.first_ns is not None]
+    lasts = [f.last_ns for f in files if f.last_ns is not None]
+    start, duration = span(min(firsts) if firsts else None, max(lasts) if lasts else None)
+    topics = {}
+    for f in files:
+        for name, (typ, count) in f.topics.items():
+            topics.setdefault(name, [typ, 0])[1] += count
+    info = {'rosbag2_bagfile_information': {
+        'version': 8,
+        'storage_identifier': 'mcap',
+        'duration': {'nanoseconds': duration},
+        'starting_time': {'nanoseconds_since_epoch': start},
+        'message_count': sum(c for _, c in topics.values()),
+        'topics_with_message_count': [{
+            'topic_metadata': {'name': name, 'type': typ, 'serialization_format': 'cdr',
+                               'offered_qos_profiles': '', 'type_description_hash': ''},
+            'message_count': count} for name, (typ, count) in topics.items()],
+        'compression_format': '',
+        'compression_mode': '',
+        'relative_file_paths': [f.path for f in files],
+        'files': [{'path': f.path,
+                   'starting_time': {'nanoseconds_since_epoch': span(f.first_ns, f.last_ns)[0]},
+                   'duration': {'nanoseconds': span(f.first_ns, f.last_ns)[1]},
+                   'message_count': sum(c for _, c in f.topics.values())} for f in files],
+        'custom_data': {},
+        'ros_distro': 'jazzy',
+    }}
+    tmp = folder / 'metadata.yaml.tmp'
+    with open(tmp, 'w') as fh:
+        yaml.dump(info, fh, Dumper=_SAFE_DUMPER, sort_keys=False)
+    os.replace(tmp, folder / 'metadata.yaml')
 
 
 class Rosbag2Writer:
@@ -73,7 +126,8 @@ class Rosbag2Writer:
         """Push buffered messages to the OS as a finished chunk and refresh metadata.yaml.
 
         A process killed after this (SIGKILL) leaves a .mcap without summary/footer whose
-        chunks up to here are intact: recoverable with `mcap recover`, not readable as is.
+        chunks up to here are intact: `ego-motion reindex BAG` rebuilds a complete bag from
+        them (readers call it unfinished until then).
         """
         if self._closed:
             return
@@ -89,36 +143,13 @@ class Rosbag2Writer:
         os.fsync(self._stream.fileno())
         self._stream.close()
         self.write_metadata()
+        if interrupt.requested():   # closed on the way out after a signal: say it was kept
+            interrupt.note(kept=f'kept {self.path}: {sum(self.message_counts().values())} messages, '
+                                'closed with its summary and metadata.yaml')
 
     def write_metadata(self):
-        start = self._first or 0
-        duration = (self._last - self._first) if self._first is not None else 0
-        total = sum(c for _, c in self._topics.values())
-        topics = [{
-            'topic_metadata': {'name': name, 'type': typ, 'serialization_format': 'cdr',
-                               'offered_qos_profiles': '', 'type_description_hash': ''},
-            'message_count': count} for name, (typ, count) in self._topics.items()]
-        info = {'rosbag2_bagfile_information': {
-            'version': 8,
-            'storage_identifier': 'mcap',
-            'duration': {'nanoseconds': duration},
-            'starting_time': {'nanoseconds_since_epoch': start},
-            'message_count': total,
-            'topics_with_message_count': topics,
-            'compression_format': '',
-            'compression_mode': '',
-            'relative_file_paths': [self.file_name],
-            'files': [{'path': self.file_name,
-                       'starting_time': {'nanoseconds_since_epoch': start},
-                       'duration': {'nanoseconds': duration},
-                       'message_count': total}],
-            'custom_data': {},
-            'ros_distro': 'jazzy',
-        }}
-        tmp = self.path / 'metadata.yaml.tmp'
-        with open(tmp, 'w') as f:
-            yaml.dump(info, f, Dumper=_SAFE_DUMPER, sort_keys=False)
-        os.replace(tmp, self.path / 'metadata.yaml')
+        write_metadata(self.path, [FileStats(self.file_name, {t: (typ, n) for t, (typ, n) in self._topics.items()},
+                                             self._first, self._last)])
 
     def __enter__(self):
         return self

@@ -16,6 +16,11 @@
 * Diagnostics: with a ROS node given (`attach_ros`), it reads /diagnostics and publishes its
   own entry 'ego_motion/coordinator' (allocation, imbalance, migrations, restarts).
 
+Signals: at the first SIGINT, SIGTERM or SIGHUP (interrupt.py) the coordinator stops
+restarting workers (`quiesce`): the same signal may have reached them (a terminal's process
+group, systemd's cgroup), and the command's cleanup calls `stop()` next. Workers ignore
+SIGINT and SIGHUP (they are stopped by their coordinator, in order) and end on SIGTERM.
+
 Worker processes are spawned only from the thread that created the coordinator and from
 its watchdog thread, both alive as long as the coordinator: PR_SET_PDEATHSIG fires when the
 spawning *thread* ends.
@@ -32,6 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Dict, List, Optional
 
+from multicam_ego_motion import interrupt
 from multicam_ego_motion.coordinator import control
 from multicam_ego_motion.coordinator.allocation import (Allocation, allocate, evaluate_loads, frame_gain,
                                                         should_rebalance)
@@ -104,6 +110,7 @@ class Coordinator:
         self._dead = []
         self._dead_cond = threading.Condition()
         self._stopping = False
+        self._quiet = False          # quiesce(): a signal came, stop() follows
         self._last_rebalance_frame = -10 ** 9
         # Per closed frame, against the placement of the time: was a move worth it? Kept as
         # frames close (the executor thread) so that the lockstep between-frames hook only
@@ -116,6 +123,7 @@ class Coordinator:
 
     # ---- start / stop ---------------------------------------------------------------------
     def start(self):
+        interrupt.on_signal(self.quiesce)
         self._listener, key_env = control.listen(tempfile.gettempdir())
         self.env.update(key_env)
         threading.Thread(target=self._accept_loop, daemon=True, name='coordinator-accept').start()
@@ -138,7 +146,13 @@ class Coordinator:
         self._watchdog.start()
         return self
 
+    def quiesce(self):
+        """No more worker restarts or spares from now on (a signal came: `stop()` follows).
+        Only sets a flag: it runs inside the signal handler."""
+        self._quiet = True
+
     def stop(self, timeout=10.0):
+        interrupt.remove_hook(self.quiesce)
         self._stopping = True
         with self._dead_cond:
             self._dead_cond.notify_all()
@@ -318,6 +332,10 @@ class Coordinator:
                 if self._stopping:
                     return
                 index, t_dead = self._dead.pop(0)
+            if self._quiet:
+                # A signal came (maybe to the worker too): stop() follows, nothing restarts.
+                # This thread stays until then: the workers it spawned die with it.
+                continue
             if index < 0:                       # the spare itself died: start another
                 self.say('the spare worker died; starting another')
                 self._spare = WorkerHandle(-1)
@@ -348,7 +366,7 @@ class Coordinator:
             self.say(f'worker {index} restored in {dt:.2f} s')
             for cb in self.on_restored:
                 cb(index)
-            if self.spare and self._spare is None and not self._stopping:
+            if self.spare and self._spare is None and not (self._stopping or self._quiet):
                 self._spare = WorkerHandle(-1)
                 self._spawn(self._spare)
 

@@ -10,6 +10,9 @@ what a restarted worker is restored from.
 
 Dies with its parent: PR_SET_PDEATHSIG, and the end of the control channel (a coordinator
 that is gone closes it) both end the process, so no worker outlives its coordinator.
+Signals: SIGTERM ends it (also PR_SET_PDEATHSIG's); SIGINT and SIGHUP, which a terminal sends
+to the whole process group, are ignored: the coordinator, which gets them too, stops its
+workers in order (interrupt.py).
 """
 import argparse
 import ctypes
@@ -22,6 +25,7 @@ import threading
 import time
 
 import rclpy
+import rclpy.signals
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor, TimeoutException
 from rclpy.parameter import Parameter
 
@@ -370,6 +374,8 @@ class Worker:
 
 
 def main(argv=None):
+    for sig in (signal.SIGINT, signal.SIGHUP):   # the coordinator stops us (module docstring)
+        signal.signal(sig, signal.SIG_IGN)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--index', type=int, required=True, help='worker index; -1: a hot spare')
     ap.add_argument('--control', required=True, help='address of the coordinator\'s control channel')
@@ -387,7 +393,8 @@ def main(argv=None):
         node_class(kind)
     conn = control.connect(args.control)
     signal.signal(signal.SIGTERM, lambda *a: (_ for _ in ()).throw(SystemExit(0)))
-    rclpy.init()
+    # rclpy's SIGTERM handler wakes the executor's blocking wait (shuts the context down).
+    rclpy.init(signal_handler_options=rclpy.signals.SignalHandlerOptions.SIGTERM)
     # EGO_MOTION_PROFILE_DIR=DIR: each worker writes cProfile stats to
     # DIR/worker_<index>_<pid>.prof when it stops (where the graph's CPU goes beyond the
     # nodes' own stage times). The pid: spares all start with index -1.
