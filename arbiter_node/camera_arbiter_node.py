@@ -43,6 +43,9 @@ class CameraArbiterNode(Node):
         self.pub = self.create_publisher(PoseWithCovarianceStamped, 'pose', RELIABLE)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         self.diag_sink = None        # hook(stamp, status): the worker batches statuses per frame
+        # hook(msg) instead of only publishing: a worker hands the camera's estimate to a
+        # co-hosted general arbiter directly (which then does not subscribe to it)
+        self.estimate_sink = None
         self.sources = sources
         self.quarter_subs = {}
         self.take_local(())
@@ -75,7 +78,13 @@ class CameraArbiterNode(Node):
             # Quarter order, not arrival order: float sums must not depend on the scheduler.
             fused = fuse_quarters([g.items[k] for k in sorted(g.items)], source=self.camera,
                                   **self.fusion_params)
-            self.pub.publish(estimate_to_msg(fused))
+            msg = estimate_to_msg(fused)
+            # With the general arbiter co-hosted, published only for other listeners (a
+            # recorder, a viewer): a publish without subscribers still costs.
+            if self.estimate_sink is None or self.pub.get_subscription_count() > 0:
+                self.pub.publish(msg)
+            if self.estimate_sink is not None:
+                self.estimate_sink(msg)
             ms = (time.thread_time() - t0) * 1e3
             level = 'warn' if g.missing or not fused.informative else 'ok'
             text = f'missing quarters: {", ".join(g.missing)}' if g.missing else fused.state

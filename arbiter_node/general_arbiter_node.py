@@ -80,9 +80,8 @@ class GeneralArbiterNode(Node):
         self.pub_tf = self.create_publisher(TFMessage, '/tf', RELIABLE)
         self.pub_path = self.create_publisher(Path, '/ego_motion/path', RELIABLE)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
-        for cam in self.rig.cameras:
-            self.create_subscription(PoseWithCovarianceStamped, f'/{cam.name}/pose',
-                                     lambda m, n=cam.name: self.on_camera(n, m), RELIABLE)
+        self.camera_subs = {}
+        self.take_local(())
         self.held = []                       # (sync group, since): waiting for its wheel reading
         self.wheel_sub = None
         if p['use_wheel_odometry']:
@@ -91,6 +90,18 @@ class GeneralArbiterNode(Node):
         self.create_service(Trigger, '~/reset', self.on_reset)
         self.poll_timer = self.create_timer(POLL_PERIOD_S, self.poll)
         self.get_logger().info(f'fusing cameras {", ".join(self.rig.names)}')
+
+    def take_local(self, local):
+        """Cameras whose estimates a host hands to on_camera itself (worker.py: co-hosted
+        camera arbiters): no subscription for them, every other one subscribed."""
+        for name in self.rig.names:
+            sub = self.camera_subs.get(name)
+            if name in local and sub is not None:
+                self.destroy_subscription(self.camera_subs.pop(name))
+            elif name not in local and sub is None:
+                self.camera_subs[name] = self.create_subscription(
+                    PoseWithCovarianceStamped, f'/{name}/pose',
+                    lambda m, n=name: self.on_camera(n, m), RELIABLE)
 
     def on_wheel(self, msg: Odometry):
         self.wheel.add(stamp_to_ns(msg.header.stamp), *twist_from_odometry(msg))

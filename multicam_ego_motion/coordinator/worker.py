@@ -166,9 +166,10 @@ class Worker:
                 del self.feeds[topic]
 
     def wire_local(self):
-        """Quarter estimates go to a camera arbiter of the same worker by a call (they are
-        still published, for the recorder and anyone else); the arbiter subscribes only to
-        its quarters hosted elsewhere. Redone whenever a node comes or goes."""
+        """Quarter estimates go to a camera arbiter of the same worker by a call, and camera
+        estimates to a general arbiter of the same worker (they are still published when
+        anyone else listens: the recorder, a viewer); an arbiter subscribes only to its
+        sources hosted elsewhere. Redone whenever a node comes or goes."""
         arbiters = {n.camera: n for k, n in self.hosted.items() if self.kinds[k] == 'camera_arbiter'}
         local = {}
         for k, n in self.hosted.items():
@@ -181,6 +182,13 @@ class Worker:
         for cam, arb in arbiters.items():
             arb.take_local(local.get(cam, set()))
             strip_event_handlers(arb)
+        # Camera estimates go to a general arbiter of the same worker the same way.
+        general = next((n for k, n in self.hosted.items() if self.kinds[k] == 'general_arbiter'), None)
+        for cam, arb in arbiters.items():
+            arb.estimate_sink = None if general is None else (lambda msg, g=general, c=cam: g.on_camera(c, msg))
+        if general is not None:
+            general.take_local(set(arbiters))
+            strip_event_handlers(general)
 
     def shared_subscriptions(self, node):
         return [self.feeds[t][0] for t in getattr(node, 'inputs', {}) if t in self.feeds]
