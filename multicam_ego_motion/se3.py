@@ -56,7 +56,8 @@ def R_to_rotvec(R) -> np.ndarray:
     """SO(3) logarithm in closed form: scipy's from_matrix (which re-orthonormalises) cost
     0.2 ms a call, 90 % of the camera arbiter's time. Near pi the closed form loses
     precision, so scipy takes those. Plain floats: numpy's per-call overhead on 3-vectors
-    was most of the rest (norm and arctan2 of numpy give the same bits as math's here)."""
+    was most of the rest (numpy's norm agrees with math's to the last bits; its BLAS kernel
+    depends on the CPU)."""
     R = np.asarray(R, dtype=float)
     (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
     vx, vy, vz = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)

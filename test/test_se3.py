@@ -63,9 +63,11 @@ def _log_numpy(R):
     return vee * (angle / sin)
 
 
-def test_log_has_the_bits_of_the_numpy_formulation():
+def test_log_agrees_with_the_numpy_formulation_to_the_last_bits():
+    # To a few units in the last place, not bit for bit: np.linalg.norm goes through the
+    # BLAS dot product, whose kernel (and so its rounding) depends on the CPU it runs on.
     rng = np.random.default_rng(4)
     for k in range(3000):
         v = rng.normal(size=3) * 10 ** rng.uniform(-10, 0.4)
         R = Rotation.from_rotvec(v).as_matrix()
-        assert np.array_equal(R_to_rotvec(R), _log_numpy(R))
+        np.testing.assert_array_max_ulp(R_to_rotvec(R), _log_numpy(R), maxulp=4)
