@@ -1,0 +1,252 @@
+"""A regression suite file: which bags to replay, how, and what their figures must meet.
+
+    # my_suite.yaml (paths are relative to this file)
+    baseline: my_suite.baseline.json     # optional: figures of an earlier run
+    defaults:                            # optional: for every bag (a bag's own keys win;
+      workers: 2                         #   limits merge figure by figure)
+      limits: {odometry_share: 1.0}
+    bags:
+      - name: loop                       # optional: the bag folder's or scenario's name
+        generate: {scenario: loop, seed: 7, duration: 20, rate: 8, width: 320, height: 240, fx: 200}
+        limits: {ate_pct: 0.6, final_drift_pct: 0.7}
+      - bag: ../bags/yard                # a recorded bag
+        rig: ../config/yard_rig.yaml     # optional (default: BAG/rig.yaml, else /tf_static)
+        params: yard_params.yaml         # optional (default: the package's config/params.yaml)
+        no_wheel: true                   # optional: do not fuse /wheel/odom
+        duration: 60                     # optional: replay only the first 60 s
+        baseline_tolerance_pct: 10       # compare with the baseline, 10 % worse allowed
+
+Every error names the file, the bag entry and the key.
+"""
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional
+
+from multicam_ego_motion.check.bags import GenerateSpec
+from multicam_ego_motion.check.figures import FIGURES
+from multicam_ego_motion.errors import UserError
+
+DEFAULT_WORKERS = 2
+DEFAULT_GROUND_TRUTH_TOPIC = '/ground_truth/odom'
+SUITE_KEYS = ('bags', 'defaults', 'baseline')
+# keys `defaults:` may give every bag
+SHARED_KEYS = ('rig', 'params', 'workers', 'no_wheel', 'duration', 'limits',
+               'baseline_tolerance_pct', 'ground_truth_topic')
+BAG_KEYS = ('name', 'bag', 'generate') + SHARED_KEYS
+GENERATE_KEYS = {'scenario': str, 'seed': int, 'duration': float, 'rate': float, 'width': int,
+                 'height': int, 'fx': float, 'k1': float, 'cameras': int}
+NAME_PATTERN = re.compile(r'^[A-Za-z0-9][A-Za-z0-9_.-]*$')
+
+
+@dataclass
+class BagEntry:
+    name: str
+    bag: Optional[Path]                    # None: generated (see `generate`)
+    generate: Optional[GenerateSpec]
+    rig: Optional[Path] = None
+    params: Optional[Path] = None
+    workers: int = DEFAULT_WORKERS
+    no_wheel: bool = False
+    duration: Optional[float] = None
+    limits: Dict[str, float] = field(default_factory=dict)
+    baseline_tolerance_pct: Optional[float] = None
+    ground_truth_topic: str = DEFAULT_GROUND_TRUTH_TOPIC
+
+    @property
+    def uses_baseline(self) -> bool:
+        return self.baseline_tolerance_pct is not None
+
+
+@dataclass
+class Suite:
+    path: Path
+    bags: List[BagEntry]
+    baseline: Optional[Path] = None
+
+    @property
+    def name(self) -> str:
+        return self.path.stem
+
+
+class _Where:
+    """Names the place of an error: 'suite.yaml: bags[2] (corridor): limits.ate_pct'."""
+
+    def __init__(self, path: Path, entry: Optional[str] = None):
+        self.path, self.entry = path, entry
+
+    def error(self, key: Optional[str], text: str) -> UserError:
+        where = str(self.path) + (f': {self.entry}' if self.entry else '')
+        return UserError(f'{where}: {key + ": " if key else ""}{text}')
+
+
+def _number(where, key, value, minimum=None, maximum=None, integer=False):
+    ok = isinstance(value, int) if integer else isinstance(value, (int, float))
+    if isinstance(value, bool) or not ok or (not integer and not math.isfinite(value)):
+        raise where.error(key, f'expected {"an integer" if integer else "a number"}, got {value!r}')
+    if minimum is not None and value < minimum or maximum is not None and value > maximum:
+        span = (f'between {minimum:g} and {maximum:g}' if maximum is not None
+                else f'at least {minimum:g}')
+        raise where.error(key, f'must be {span}, got {value!r}')
+    return value
+
+
+def _mapping(where, key, value) -> dict:
+    if not isinstance(value, dict):
+        raise where.error(key, f'expected a mapping (key: value), got {type(value).__name__} {value!r}')
+    return value
+
+
+def _unknown_keys(where, prefix, given, allowed):
+    for k in given:
+        if k not in allowed:
+            raise where.error(f'{prefix}{k}', f'unknown key (expected one of: {", ".join(allowed)})')
+
+
+def _file(where, key, value, base: Path) -> Path:
+    if not isinstance(value, str) or not value:
+        raise where.error(key, f'expected a path, got {value!r}')
+    path = (base / value).resolve()
+    if not path.exists():
+        raise where.error(key, f'{path} not found')
+    return path
+
+
+def _limits(where, value) -> Dict[str, float]:
+    limits = _mapping(where, 'limits', value)
+    _unknown_keys(where, 'limits.', limits, tuple(FIGURES))
+    out = {}
+    for k, v in limits.items():
+        out[k] = float(_number(where, f'limits.{k}', v, 0.0, FIGURES[k].maximum))
+    return out
+
+
+def _generate(where, value) -> GenerateSpec:
+    from types import SimpleNamespace
+
+    from multicam_ego_motion.scenarios.generator import validate
+    gen = _mapping(where, 'generate', value)
+    _unknown_keys(where, 'generate.', gen, tuple(GENERATE_KEYS))
+    if 'scenario' not in gen:
+        raise where.error('generate', 'needs a scenario')
+    kw = {}
+    for k, v in gen.items():
+        kind = GENERATE_KEYS[k]
+        if kind is str:
+            if not isinstance(v, str):
+                raise where.error(f'generate.{k}', f'expected a name, got {v!r}')
+            kw[k] = v
+        else:
+            kw[k] = kind(_number(where, f'generate.{k}', v, integer=kind is int))
+    spec = GenerateSpec(**kw)
+    try:
+        validate(SimpleNamespace(**spec.__dict__))
+    except UserError as e:       # the generator's words name its command-line options
+        raise where.error('generate', str(e).replace('--', '')) from None
+    if not 1 <= spec.cameras <= 8:
+        raise where.error('generate.cameras', f'must be between 1 and 8, got {spec.cameras}')
+    return spec
+
+
+def _shared(where, raw: dict, base: Path) -> dict:
+    """The SHARED_KEYS of a bag entry or of `defaults:`, checked and converted."""
+    out = {}
+    for key in SHARED_KEYS:
+        if key not in raw:
+            continue
+        v = raw[key]
+        if key in ('rig', 'params'):
+            out[key] = _file(where, key, v, base)
+        elif key == 'workers':
+            out[key] = _number(where, key, v, 1, 64, integer=True)
+        elif key == 'no_wheel':
+            if not isinstance(v, bool):
+                raise where.error(key, f'expected true or false, got {v!r}')
+            out[key] = v
+        elif key == 'duration':
+            out[key] = float(_number(where, key, v, 0.1))
+        elif key == 'limits':
+            out[key] = _limits(where, v)
+        elif key == 'baseline_tolerance_pct':
+            out[key] = float(_number(where, key, v, 0.0))
+        elif key == 'ground_truth_topic':
+            if not isinstance(v, str) or not v.startswith('/'):
+                raise where.error(key, f'expected a topic name (/...), got {v!r}')
+            out[key] = v
+    return out
+
+
+def _entry(path: Path, index: int, raw, defaults: dict) -> BagEntry:
+    base = path.parent
+    label = f'bags[{index}]'
+    if isinstance(raw, dict) and isinstance(raw.get('name'), str):
+        label += f' ({raw["name"]})'
+    elif isinstance(raw, dict) and isinstance(raw.get('bag'), str):
+        label += f' ({raw["bag"]})'
+    where = _Where(path, label)
+    raw = _mapping(where, None, raw)
+    _unknown_keys(where, '', raw, BAG_KEYS)
+    if ('bag' in raw) == ('generate' in raw):
+        raise where.error(None, 'give either bag (a bag folder) or generate (a scenario), not '
+                                + ('both' if 'bag' in raw else 'neither'))
+    bag = _file(where, 'bag', raw['bag'], base) if 'bag' in raw else None
+    if bag is not None and not bag.is_dir():
+        raise where.error('bag', f'{bag} is not a bag folder')
+    spec = _generate(where, raw['generate']) if 'generate' in raw else None
+    own = _shared(where, raw, base)
+    values = {**defaults, **own}
+    own_limits = own.get('limits', {})
+    values['limits'] = {**own_limits, **{k: v for k, v in defaults.get('limits', {}).items()
+                                         if k not in own_limits}}
+    name = raw.get('name')
+    if name is None:
+        name = bag.name if bag is not None else spec.scenario
+    if not isinstance(name, str) or not NAME_PATTERN.match(name):
+        raise where.error('name', f'{name!r}: use letters, digits, ".", "_" and "-" '
+                                  '(it names the output folder and the test cases)')
+    entry = BagEntry(name=name, bag=bag, generate=spec, **values)
+    if not entry.limits and not entry.uses_baseline:
+        raise where.error(None, 'nothing to check: give limits or baseline_tolerance_pct')
+    return entry
+
+
+def parse_suite(path: Path, doc) -> Suite:
+    where = _Where(path)
+    if not isinstance(doc, dict):
+        raise where.error(None, 'expected a mapping with a list of bags under "bags"')
+    _unknown_keys(where, '', doc, SUITE_KEYS)
+    defaults_raw = _mapping(where, 'defaults', doc.get('defaults') or {})
+    _unknown_keys(_Where(path, 'defaults'), '', defaults_raw, SHARED_KEYS)
+    defaults = _shared(_Where(path, 'defaults'), defaults_raw, path.parent)
+    bags_raw = doc.get('bags')
+    if not isinstance(bags_raw, list) or not bags_raw:
+        raise where.error('bags', 'expected a non-empty list of bag entries')
+    bags = [_entry(path, i, raw, defaults) for i, raw in enumerate(bags_raw)]
+    seen = {}
+    for i, e in enumerate(bags):
+        if e.name in seen:
+            raise _Where(path, f'bags[{i}] ({e.name})').error(
+                'name', f'same name as bags[{seen[e.name]}]: give each entry its own name')
+        seen[e.name] = i
+    baseline = None
+    if doc.get('baseline') is not None:
+        value = doc['baseline']
+        if not isinstance(value, str) or not value:
+            raise where.error('baseline', f'expected a path, got {value!r}')
+        baseline = (path.parent / value).resolve()   # may not exist yet (--update-baseline)
+    return Suite(path, bags, baseline)
+
+
+def load_suite(path) -> Suite:
+    import yaml
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f'suite file not found: {path}')
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        mark = getattr(e, 'problem_mark', None)
+        at = f' at line {mark.line + 1}, column {mark.column + 1}' if mark else ''
+        raise UserError(f'{path}: not valid YAML{at} ({getattr(e, "problem", None) or e})') from None
+    return parse_suite(path, doc)
