@@ -2,7 +2,7 @@
 
 Why: triangulation (landmark_map) takes its scale from the fused poses, and those take theirs
 from the wheel odometry and the rig's lever arms; on a rig of 0.25 m lever arms the lever
-arms hold the scale only to a few percent (README, design notes), so the map inherits the
+arms hold the scale only to a few percent (docs/estimator.md), so the map inherits the
 wheel's scale error. The camera's height above the floor is known from the rig: base_link is
 on the floor (REP-105 base_footprint; the rig's `floor_z` says where it is), so a
 point on the floor is fixed by its ray alone, metric, whatever the fused poses' scale. A

@@ -7,7 +7,7 @@ over to another process (the coordinator's rebalancing) with bit-identical conti
 
 Pose: tracks with a landmark are measured by reprojection; tracks without one (too young to
 be triangulated, e.g. in fast turns) by their epipolar line to an earlier fused view, which
-fixes rotation but not distance (see README, design notes).
+fixes rotation but not distance (see docs/estimator.md).
 """
 import math
 import time

@@ -1,4 +1,4 @@
-"""Rebalancing on measured costs (issue 4, part 3): on the bare_wall scenario the left
+"""Rebalancing on measured costs: on the bare_wall scenario the left
 camera's features thin out as it passes the bare wall, its quarters' measured cost (CPU ms
 from their /diagnostics) falls to about a third, and the coordinator, which started with
 whole cameras per worker ({front, back} / {left, right}), moves a quarter to the worker
