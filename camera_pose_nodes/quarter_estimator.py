@@ -11,7 +11,7 @@ fixes rotation but not distance (see docs/estimator.md).
 """
 import math
 import time
-from dataclasses import dataclass, fields, asdict
+from dataclasses import asdict, field, fields, make_dataclass
 from functools import lru_cache
 from typing import Dict, Optional
 
@@ -93,39 +93,8 @@ PARAMETERS = {
 }
 
 
-@dataclass
-class QuarterParams:
-    min_features: int = PARAMETERS['min_features'][0]
-    max_features: int = PARAMETERS['max_features'][0]
-    klt_window: int = PARAMETERS['klt_window'][0]
-    pyramid_levels: int = PARAMETERS['pyramid_levels'][0]
-    klt_iterations: int = PARAMETERS['klt_iterations'][0]
-    klt_epsilon_px: float = PARAMETERS['klt_epsilon_px'][0]
-    fb_threshold_px: float = PARAMETERS['fb_threshold_px'][0]
-    quality_level: float = PARAMETERS['quality_level'][0]
-    min_distance_px: float = PARAMETERS['min_distance_px'][0]
-    block_size: int = PARAMETERS['block_size'][0]
-    grid_rows: int = PARAMETERS['grid_rows'][0]
-    grid_cols: int = PARAMETERS['grid_cols'][0]
-    parallel_chunks: bool = PARAMETERS['parallel_chunks'][0]
-    max_history: int = PARAMETERS['max_history'][0]
-    pixel_sigma: float = PARAMETERS['pixel_sigma'][0]
-    landmark_covariance: bool = PARAMETERS['landmark_covariance'][0]
-    gate_chi2: float = PARAMETERS['gate_chi2'][0]
-    accel_sigma: float = PARAMETERS['accel_sigma'][0]
-    alpha_sigma: float = PARAMETERS['alpha_sigma'][0]
-    predict_flow: bool = PARAMETERS['predict_flow'][0]
-    epipolar: bool = PARAMETERS['epipolar'][0]
-    epipolar_min_baseline: float = PARAMETERS['epipolar_min_baseline'][0]
-    min_inliers: int = PARAMETERS['min_inliers'][0]
-    parallax_deg: float = PARAMETERS['parallax_deg'][0]
-    refine_factor: float = PARAMETERS['refine_factor'][0]
-    max_reproj_px: float = PARAMETERS['max_reproj_px'][0]
-    min_depth: float = PARAMETERS['min_depth'][0]
-    max_depth: float = PARAMETERS['max_depth'][0]
-    ground_plane: bool = PARAMETERS['ground_plane'][0]
-    ground_tolerance: float = PARAMETERS['ground_tolerance'][0]
-    ground_map_scale_std: float = PARAMETERS['ground_map_scale_std'][0]
+class _QuarterParamsChecks:
+    """Checks of QuarterParams (the fields come from PARAMETERS, the one table)."""
 
     def validate(self) -> 'QuarterParams':
         for f in fields(self):
@@ -149,6 +118,16 @@ class QuarterParams:
         if unknown:
             raise UserError(f'unknown quarter parameter(s): {", ".join(sorted(unknown))}')
         return cls(**d).validate()
+
+
+# The quarter's parameters as a dataclass generated from PARAMETERS: one table says each
+# parameter's name, default, description and range, for the node, the params file and the
+# ROS-free callers alike.
+QuarterParams = make_dataclass(
+    'QuarterParams', [(name, type(default), field(default=default))
+                      for name, (default, _, _, _) in PARAMETERS.items()],
+    bases=(_QuarterParamsChecks,))
+QuarterParams.__module__ = __name__
 
 
 class QuarterEstimator:
