@@ -48,14 +48,15 @@ def run(args) -> int:
 
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
     from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
-    from multicam_ego_motion.replay import DEFAULT_PARAMS, resolve_rig
+    from multicam_ego_motion.package_share import default_params
+    from multicam_ego_motion.replay import resolve_rig
     from multicam_ego_motion.sequential_pipeline import run_sequential
 
     reader = Rosbag2Reader(args.bag)
     if args.ground_truth_topic not in reader.topics:
         raise UserError(f'bag {args.bag} has no {args.ground_truth_topic}: nothing to score against')
     rig, _ = resolve_rig(reader, args.rig)
-    params_file = Path(args.params) if args.params else DEFAULT_PARAMS
+    params_file = Path(args.params) if args.params else default_params()
     qp = quarter_params_from(params_file)
     fp = fusion_params_from(params_file)
     present = [c for c in rig.cameras if c.image_topic in reader.topics]

@@ -9,18 +9,22 @@ user set (FASTRTPS_DEFAULT_PROFILES_FILE) or another RMW is left alone.
 import os
 from pathlib import Path
 
-PROFILE = Path(__file__).resolve().parent.parent / 'config' / 'fastdds.xml'
 PROFILE_VAR = 'FASTRTPS_DEFAULT_PROFILES_FILE'     # Fast DDS 2.x (ros_fastrtps 2.14)
 FAST_DDS_RMWS = ('rmw_fastrtps_cpp', 'rmw_fastrtps_dynamic_cpp')
 
 
+def profile() -> Path:
+    """The package's config/fastdds.xml (package_share.py: checkout or install space)."""
+    from multicam_ego_motion import package_share
+    return package_share.config_file('fastdds.xml')
+
+
 def use_graph_profile(env=None) -> bool:
     """Point `env` (default os.environ) at config/fastdds.xml; before rclpy.init and before
-    worker processes are started (they inherit it). Returns whether it was set."""
+    worker processes are started (they inherit it). Returns whether it was set. A package
+    whose config/fastdds.xml is missing is an error (UserError), not a silent default."""
     env = os.environ if env is None else env
     if PROFILE_VAR in env or env.get('RMW_IMPLEMENTATION', FAST_DDS_RMWS[0]) not in FAST_DDS_RMWS:
         return False
-    if not PROFILE.is_file():
-        return False
-    env[PROFILE_VAR] = str(PROFILE)
+    env[PROFILE_VAR] = str(profile())
     return True

@@ -14,14 +14,12 @@ from typing import Dict
 from multicam_ego_motion import interrupt
 from multicam_ego_motion.errors import UserError
 
-DEFAULT_PARAMS = Path(__file__).resolve().parent.parent / 'config' / 'params.yaml'
-
 
 def configure_parser(p):
     p.add_argument('bag', help='rosbag2 MCAP bag (folder) to replay')
     p.add_argument('--out', required=True, help='output folder')
     p.add_argument('--rig', help='rig YAML (default: BAG/rig.yaml, else built from /tf_static)')
-    p.add_argument('--params', help=f'ROS params file (default: {DEFAULT_PARAMS.name} of the package)')
+    p.add_argument('--params', help="ROS params file (default: the package's config/params.yaml)")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument('--lockstep', action='store_true', default=True,
                       help='next frame only when the graph has published /odom for the last (default)')
@@ -297,7 +295,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
 
 
 def run(args) -> int:
-    from multicam_ego_motion import dds_transport, ros_domain
+    from multicam_ego_motion import dds_transport, package_share, ros_domain
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
     from multicam_ego_motion.replay_summary import summarize
 
@@ -316,7 +314,7 @@ def run(args) -> int:
     if rig_file is None:
         rig_file = out / 'rig.yaml'
         rig.save(rig_file)
-    params = Path(args.params) if args.params else DEFAULT_PARAMS
+    params = Path(args.params) if args.params else package_share.default_params()
     if not params.exists():
         raise UserError(f'params file not found: {params}')
     lockstep = args.rate is None
@@ -325,6 +323,7 @@ def run(args) -> int:
     print(f'replay: {args.bag} ({", ".join(rig.names)}; '
           f'{"lockstep" if lockstep else f"rate {args.rate}"}; {args.workers} workers; '
           f'ROS_DOMAIN_ID={os.environ["ROS_DOMAIN_ID"]})', flush=True)
+    print(f'replay: rig {rig_file}; params {params}', flush=True)
     if missing:
         print(f'replay: cameras without topics in the bag (the graph runs on the others): '
               f'{", ".join(missing)}', flush=True)

@@ -1,5 +1,7 @@
-"""Shared test setup: an isolated ROS 2 network per test process, rclpy, the CLI runner."""
+"""Shared test setup: an isolated ROS 2 network per test process, rclpy, the CLI runner, a
+colcon install space of the package."""
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -71,3 +73,54 @@ def read_bag(path):
         messages = [(c.topic, t, reader.deserialize(raw, c.msgtype))
                     for c, t, raw in reader.messages()]
     return topics, messages
+
+
+# ---- a colcon install space of this package (test_package_build, test_install_space) -----
+
+PACKAGE = 'multicam_ego_motion'
+# Everything a checkout may hold that is not the package's source: venvs, build outputs
+# (including the tf2_msgs workspace and the native kernel built in place), caches.
+NOT_SOURCE = shutil.ignore_patterns(
+    '.git', '.venv', 'build', 'install', 'log', 'out', '__pycache__', '*.egg-info',
+    '.pytest_cache', '*.so')
+
+
+def colcon_command():
+    try:
+        import colcon_core  # noqa: F401
+    except ImportError:
+        pytest.skip('colcon is not importable in this interpreter (pip install -r requirements.txt)')
+    exe = os.path.join(os.path.dirname(sys.executable), 'colcon')
+    if not os.access(exe, os.X_OK):
+        pytest.skip(f'colcon_core is importable but no colcon command beside {sys.executable}')
+    return exe
+
+
+def env_without_ros_setup():
+    """This interpreter's environment with no sourced ROS or colcon setup leaking in."""
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith(('COLCON', 'AMENT_')) and k != 'PYTHONPATH'}
+    env['PATH'] = os.path.dirname(sys.executable) + os.pathsep + env.get('PATH', '')
+    return env
+
+
+@pytest.fixture(scope='session')
+def install_prefix(tmp_path_factory):
+    """`colcon build` of a copy of the package (the slow part, 1-2 min: the native kernel is
+    compiled), once per session; the copy's source and build folders are then removed, so
+    that only the install space holds the package: <ws>/install/multicam_ego_motion."""
+    colcon = colcon_command()
+    ws = tmp_path_factory.mktemp('colcon_ws')
+    shutil.copytree(REPO, ws / 'src' / PACKAGE, ignore=NOT_SOURCE, symlinks=True)
+    # colcon's python setup.py step must run in this interpreter's environment
+    proc = subprocess.run(
+        [colcon, 'build', '--base-paths', 'src', '--event-handlers', 'console_direct+'],
+        cwd=ws, env=env_without_ros_setup(), capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, f'colcon build failed:\n{proc.stdout}\n{proc.stderr}'
+    shutil.rmtree(ws / 'src')
+    shutil.rmtree(ws / 'build')
+    return ws / 'install' / PACKAGE
+
+
+def install_site_packages(prefix):
+    return prefix / 'lib' / f'python{sys.version_info.major}.{sys.version_info.minor}' / 'site-packages'

@@ -9,7 +9,7 @@ NS = '{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}'
 def test_profile_is_set_unless_the_user_chose_one_or_another_rmw():
     env = {}
     assert dds_transport.use_graph_profile(env)
-    assert env == {'FASTRTPS_DEFAULT_PROFILES_FILE': str(dds_transport.PROFILE)}
+    assert env == {'FASTRTPS_DEFAULT_PROFILES_FILE': str(dds_transport.profile())}
     mine = {'FASTRTPS_DEFAULT_PROFILES_FILE': '/etc/my_profile.xml'}
     assert not dds_transport.use_graph_profile(mine)
     assert mine == {'FASTRTPS_DEFAULT_PROFILES_FILE': '/etc/my_profile.xml'}
@@ -19,7 +19,7 @@ def test_profile_is_set_unless_the_user_chose_one_or_another_rmw():
 
 
 def test_profile_gives_a_shared_memory_segment_for_two_vga_frames():
-    root = ET.parse(dds_transport.PROFILE).getroot()
+    root = ET.parse(dds_transport.profile()).getroot()
     shm = [d for d in root.iter(NS + 'transport_descriptor') if d.find(NS + 'type').text == 'SHM']
     assert len(shm) == 1
     # two frames in flight of four 640x480 mono images, with room for the rest of the traffic

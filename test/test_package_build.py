@@ -3,7 +3,8 @@
 `ros2 run multicam_ego_motion NAME` finds the package prefix through the ament index
 (share/ament_index/resource_index/packages/<pkg>) and runs the executable file
 <prefix>/lib/multicam_ego_motion/NAME; setup.cfg's install_scripts puts the console scripts
-there. This builds a copy of the package with colcon (from pip) and checks exactly that layout.
+there. This builds a copy of the package with colcon (from pip) and checks exactly that layout
+(the build: conftest.py's `install_prefix`, shared with test_install_space.py).
 """
 import os
 import shutil
@@ -12,8 +13,8 @@ import sys
 
 import pytest
 
-PACKAGE = 'multicam_ego_motion'
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from conftest import NOT_SOURCE, PACKAGE, REPO, colcon_command, install_site_packages
+
 ENTRY_POINTS = {
     'quarter_node': 'camera_pose_nodes.quarter_node:main',
     'camera_arbiter': 'arbiter_node.camera_arbiter_node:main',
@@ -21,42 +22,10 @@ ENTRY_POINTS = {
     'coordinator': 'multicam_ego_motion.coordinator.coordinator_node:main',
     'ego-motion': 'multicam_ego_motion.cli:main',
 }
-# Everything a checkout may hold that is not the package's source: venvs, build outputs
-# (including the tf2_msgs workspace and the native kernel built in place), caches.
-NOT_SOURCE = shutil.ignore_patterns(
-    '.git', '.venv', 'build', 'install', 'log', 'out', '__pycache__', '*.egg-info',
-    '.pytest_cache', '*.so')
-
-
-def _colcon():
-    try:
-        import colcon_core  # noqa: F401
-    except ImportError:
-        pytest.skip('colcon is not importable in this interpreter (pip install -r requirements.txt)')
-    exe = os.path.join(os.path.dirname(sys.executable), 'colcon')
-    if not os.access(exe, os.X_OK):
-        pytest.skip(f'colcon_core is importable but no colcon command beside {sys.executable}')
-    return exe
-
-
-@pytest.fixture(scope='module')
-def install_prefix(tmp_path_factory):
-    colcon = _colcon()
-    ws = tmp_path_factory.mktemp('colcon_ws')
-    shutil.copytree(REPO, ws / 'src' / PACKAGE, ignore=NOT_SOURCE, symlinks=True)
-    # colcon's python setup.py step must run in this interpreter's environment, with no
-    # sourced ROS setup leaking in from the caller.
-    env = {k: v for k, v in os.environ.items() if not k.startswith(('COLCON', 'AMENT_'))}
-    env['PATH'] = os.path.dirname(sys.executable) + os.pathsep + env.get('PATH', '')
-    proc = subprocess.run(
-        [colcon, 'build', '--base-paths', 'src', '--event-handlers', 'console_direct+'],
-        cwd=ws, env=env, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, f'colcon build failed:\n{proc.stdout}\n{proc.stderr}'
-    return ws / 'install' / PACKAGE
 
 
 def test_colcon_finds_only_this_package(tmp_path):
-    colcon = _colcon()
+    colcon = colcon_command()
     # resource/tf2_msgs holds a package.xml too: colcon must not pick it up as a second
     # package of this repository (it stops descending at the package root).
     ws = tmp_path / 'ws'
@@ -88,7 +57,7 @@ def test_entry_point_installed_where_ros2_run_looks(install_prefix, name):
 
 def test_entry_points_target_the_right_functions(install_prefix):
     # The installed metadata is what the scripts load at run time.
-    site = install_prefix / 'lib' / f'python{sys.version_info.major}.{sys.version_info.minor}' / 'site-packages'
+    site = install_site_packages(install_prefix)
     (egg_info,) = [p for p in site.iterdir() if p.name.endswith('.egg-info')]
     lines = (egg_info / 'entry_points.txt').read_text().splitlines()
     installed = dict(
@@ -99,7 +68,7 @@ def test_entry_points_target_the_right_functions(install_prefix):
 def test_native_kernel_built_from_source_and_installed(install_prefix):
     # The copy held no built extension (NOT_SOURCE): colcon compiled it, and the installed
     # package imports it.
-    site = install_prefix / 'lib' / f'python{sys.version_info.major}.{sys.version_info.minor}' / 'site-packages'
+    site = install_site_packages(install_prefix)
     built = sorted((site / 'camera_pose_nodes').glob('_quarter_kernels*.so'))
     assert built, f'no native kernel in {site / "camera_pose_nodes"}'
     code = ('import sys; sys.path.insert(0, sys.argv[1]); '

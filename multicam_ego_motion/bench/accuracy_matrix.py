@@ -59,12 +59,13 @@ def run(args) -> int:
     from multicam_ego_motion.ablation import score
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
     from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
-    from multicam_ego_motion.replay import DEFAULT_PARAMS, resolve_rig
+    from multicam_ego_motion.package_share import default_params
+    from multicam_ego_motion.replay import resolve_rig
     from multicam_ego_motion.sequential_pipeline import run_sequential
 
     import cv2
     cv2.setNumThreads(1)        # CPU per frame as one worker sees it
-    params_file = Path(args.params) if args.params else DEFAULT_PARAMS
+    params_file = Path(args.params) if args.params else default_params()
     qp = {**quarter_params_from(params_file), **parse_overrides(args.set)}
     fp = fusion_params_from(params_file)
     folder = Path(args.bags)

@@ -359,14 +359,15 @@ def run(args) -> int:
 
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
     from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
-    from multicam_ego_motion.replay import DEFAULT_PARAMS, resolve_rig
+    from multicam_ego_motion.package_share import default_params
+    from multicam_ego_motion.replay import resolve_rig
 
     if args.frames is not None and args.frames < 1:
         raise UserError('--frames must be at least 1')
     out = Path(args.out)
     if out.exists() and any(out.iterdir()):
         raise UserError(f'output folder {out} is not empty')
-    params = Path(args.params) if args.params else DEFAULT_PARAMS
+    params = Path(args.params) if args.params else default_params()
     if not params.exists():
         raise UserError(f'params file not found: {params}')
     reader = Rosbag2Reader(args.bag)

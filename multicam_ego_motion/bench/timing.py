@@ -64,7 +64,8 @@ def run(args) -> int:
     from multicam_ego_motion import dds_transport, ros_domain
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
     from multicam_ego_motion.bench.measures import bag_window
-    from multicam_ego_motion.replay import DEFAULT_PARAMS, resolve_rig
+    from multicam_ego_motion.package_share import default_params
+    from multicam_ego_motion.replay import resolve_rig
 
     ros_domain.isolate()
     dds_transport.use_graph_profile()
@@ -78,7 +79,7 @@ def run(args) -> int:
     if rig_file is None:
         rig_file = out / 'rig.yaml'
         rig.save(rig_file)
-    params = Path(args.params) if args.params else DEFAULT_PARAMS
+    params = Path(args.params) if args.params else default_params()
     t_bench = time.monotonic()
     n_frames, bag_s = bag_window(args.bag, args.duration)
 

@@ -42,7 +42,8 @@ from multicam_ego_motion.coordinator import control
 from multicam_ego_motion.coordinator.allocation import (Allocation, allocate, evaluate_loads, frame_gain,
                                                         should_rebalance)
 from multicam_ego_motion.coordinator.cost_monitor import CostMonitor
-from multicam_ego_motion.coordinator.graph_spec import graph_nodes
+from multicam_ego_motion.coordinator.graph_spec import (graph_nodes, normalize_namespace, remappings, ros_args,
+                                                        topic_parameter_values, under)
 from multicam_ego_motion.errors import UserError
 
 START_TIMEOUT_S = 60.0
@@ -75,9 +76,15 @@ class Coordinator:
     def __init__(self, rig, rig_file, params_file=None, workers: int = None, overrides=None,
                  log_dir=None, env=None, rebalance: bool = True, threshold: float = 0.10,
                  hysteresis_frames: int = 10, migrate_every: int = 0, spare: bool = True,
-                 logger=print):
+                 logger=print, namespace: str = ''):
         self.rig = rig
-        self.specs = {n.key: n for n in graph_nodes(rig, str(rig_file), overrides=overrides)}
+        # The graph's namespace (graph_spec.py): its nodes, and its topics through remappings
+        # that every worker process gets as global ROS arguments.
+        self.namespace = normalize_namespace(namespace)
+        self.specs = {n.key: n for n in graph_nodes(rig, str(rig_file), overrides=overrides,
+                                                    namespace=self.namespace)}
+        self.remappings = (remappings(rig, self.namespace, topic_parameter_values(params_file, overrides))
+                           if self.namespace else [])
         self.n_workers = max(1, int(workers or os.cpu_count() or 1))
         self.params_file = str(params_file) if params_file else None
         self.log_dir = Path(log_dir or tempfile.mkdtemp(prefix='ego_motion_workers_'))
@@ -217,6 +224,9 @@ class Coordinator:
                '--control', self._listener.address]
         if self.params_file:
             cmd += ['--params-file', self.params_file]
+        if self.namespace:
+            cmd += ['--namespace', self.namespace]
+        cmd += ros_args(self.remappings)
         h.proc = subprocess.Popen(cmd, stdout=h.log, stderr=subprocess.STDOUT, env=self.env)
 
     def _wait_ready(self, h: WorkerHandle):
@@ -465,10 +475,13 @@ class Coordinator:
 
         from multicam_ego_motion.qos import RELIABLE
         self._ros_node = node
-        self._diag_pub = node.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
-        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, RELIABLE)
-        if rate_mode_period_s:
-            node.create_timer(rate_mode_period_s, self._rebalance_in_background)
+        topic = under(self.namespace, '/diagnostics')
+        self._diag_pub = node.create_publisher(DiagnosticArray, topic, RELIABLE)
+        node.create_subscription(DiagnosticArray, topic, self._on_diagnostics, RELIABLE)
+        if rate_mode_period_s:      # steady clock: a node on sim time may wait for /clock forever
+            from rclpy.clock import Clock, ClockType
+            node.create_timer(rate_mode_period_s, self._rebalance_in_background,
+                              clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._bg_busy = threading.Lock()
 
     def _rebalance_in_background(self):

@@ -1,8 +1,16 @@
 """The nodes of the graph for a rig: one quarter node per camera quarter (paper T_kl), one
 camera arbiter per camera (T_k5) and one general arbiter (T_5). ROS-free description that a
-worker process turns into rclpy nodes."""
+worker process turns into rclpy nodes.
+
+A namespace (the coordinator's own, e.g. `ros2 launch ... namespace:=robot1`) moves the whole
+graph under it: the nodes (/robot1/front/q1/quarter_node, /robot1/general_arbiter) and every
+topic they use, inputs and outputs (/robot1/front/image_raw, /robot1/odom, /robot1/tf,
+/robot1/diagnostics); only /clock stays global. The nodes name most of their topics
+absolutely, which a node namespace leaves alone: `remappings()` gives the rules (rcl's
+`-r FROM:=TO`) that move those.
+"""
 from dataclasses import asdict, dataclass, field
-from typing import Dict, List
+from typing import Dict, Iterable, List, Tuple
 
 from multicam_ego_motion.rig import Rig
 
@@ -18,18 +26,84 @@ class NodeSpec:
         return asdict(self)
 
 
-def graph_nodes(rig: Rig, rig_file: str, quarters: int = 4, overrides: Dict[str, Dict] = None) -> List[NodeSpec]:
+def normalize_namespace(namespace: str) -> str:
+    """'' or '/' -> '' (none); 'robot1', '/robot1/' -> '/robot1'."""
+    ns = (namespace or '').strip().strip('/')
+    return f'/{ns}' if ns else ''
+
+
+def under(namespace: str, name: str) -> str:
+    """The absolute `name` ('/odom', '/' for the root) moved under `namespace`."""
+    ns = normalize_namespace(namespace)
+    if name == '/':
+        return ns or '/'
+    return ns + name
+
+
+def graph_nodes(rig: Rig, rig_file: str, quarters: int = 4, overrides: Dict[str, Dict] = None,
+                namespace: str = '') -> List[NodeSpec]:
     """Every node of the graph; `overrides` maps kind -> parameter values for all of that kind."""
     overrides = overrides or {}
     nodes = []
     for cam in rig.cameras:
         for q in range(1, quarters + 1):
-            nodes.append(NodeSpec(f'{cam.name}/q{q}', 'quarter', f'/{cam.name}/q{q}',
+            nodes.append(NodeSpec(f'{cam.name}/q{q}', 'quarter', under(namespace, f'/{cam.name}/q{q}'),
                                   {'camera': cam.name, 'quarter': q, 'rig_file': rig_file,
                                    **overrides.get('quarter', {})}))
-        nodes.append(NodeSpec(f'{cam.name}/arbiter', 'camera_arbiter', f'/{cam.name}',
+        nodes.append(NodeSpec(f'{cam.name}/arbiter', 'camera_arbiter', under(namespace, f'/{cam.name}'),
                               {'camera': cam.name, 'quarters': quarters,
                                **overrides.get('camera_arbiter', {})}))
-    nodes.append(NodeSpec('general_arbiter', 'general_arbiter', '/',
+    nodes.append(NodeSpec('general_arbiter', 'general_arbiter', under(namespace, '/'),
                           {'rig_file': rig_file, **overrides.get('general_arbiter', {})}))
     return nodes
+
+
+# Topics the nodes (and their worker) name absolutely in their code: outputs, links, inputs.
+FIXED_TOPICS = ('/odom', '/tf', '/diagnostics', '/ego_motion/fused_pose', '/ego_motion/path',
+                '/ego_motion/frame_schedule')
+# Their topic parameters, per node name of the params file and kind of the overrides.
+TOPIC_PARAMETERS = {('quarter_node', 'quarter'): ('fused_pose_topic', 'frame_schedule_topic'),
+                    ('general_arbiter', 'general_arbiter'): ('wheel_odometry_topic',)}
+
+
+def topic_parameter_values(params_file: str = None, overrides: Dict[str, Dict] = None) -> List[str]:
+    """The values the nodes' topic parameters take: the overrides', else the params file's,
+    else the nodes' defaults."""
+    from arbiter_node.general_arbiter_node import NODE_PARAMETERS as GENERAL
+    from camera_pose_nodes.quarter_node import NODE_PARAMETERS as QUARTER
+    from multicam_ego_motion.params_file import node_params
+    defaults = {'quarter_node': QUARTER, 'general_arbiter': GENERAL}
+    overrides = overrides or {}
+    values = []
+    for (node_name, kind), names in TOPIC_PARAMETERS.items():
+        given = node_params(params_file, node_name, set(names)) if params_file else {}
+        given.update({k: v for k, v in overrides.get(kind, {}).items() if k in names})
+        values += [str(given.get(n, defaults[node_name][n][0])) for n in names]
+    return values
+
+
+def graph_topics(rig: Rig, topic_parameters: Iterable[str] = ()) -> List[str]:
+    """Every absolute topic name the graph's nodes use (what a namespace must move)."""
+    names = list(FIXED_TOPICS)
+    for cam in rig.cameras:
+        names += [cam.image_topic, cam.camera_info_topic, f'/{cam.name}/pose']
+    names += list(topic_parameters)
+    return sorted({n for n in names if n.startswith('/')})
+
+
+def remappings(rig: Rig, namespace: str, topic_parameters: Iterable[str] = ()) -> List[Tuple[str, str]]:
+    """(from, to) rules that move the graph's absolute topics under `namespace` (none without
+    one). Given to every process of the graph as global `--ros-args -r FROM:=TO`."""
+    if not normalize_namespace(namespace):
+        return []
+    return [(n, under(namespace, n)) for n in graph_topics(rig, topic_parameters)]
+
+
+def ros_args(rules: List[Tuple[str, str]]) -> List[str]:
+    """The command-line form of `remappings()`: ['--ros-args', '-r', 'FROM:=TO', ...]."""
+    if not rules:
+        return []
+    args = ['--ros-args']
+    for src, dst in rules:
+        args += ['-r', f'{src}:={dst}']
+    return args

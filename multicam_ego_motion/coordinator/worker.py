@@ -2,7 +2,8 @@
 the coordinator over its control channel.
 
 Started by the coordinator: `python -m multicam_ego_motion.coordinator.worker --index I
---control ADDRESS [--params-file F]`, the channel's auth key in $EGO_MOTION_CONTROL_KEY. It
+--control ADDRESS [--params-file F] [--namespace NS --ros-args -r FROM:=TO ...]`, the
+channel's auth key in $EGO_MOTION_CONTROL_KEY (a namespaced graph: graph_spec.py). It
 connects back, says hello, then serves the commands of control.py: attach a node (with the
 state it carries on), detach a node (returning its state), stop. After every frame a stateful
 node (quarter, general arbiter) sends its state to the coordinator as a snapshot, which is
@@ -91,12 +92,12 @@ def linked(node, shared=(), graph_only=False) -> bool:
     local = getattr(node, 'estimate_sink', None) is not None     # its arbiter is co-hosted
     pubs_ok = all(p.get_subscription_count() > 0 for p in node.publishers
                   if (p.topic_name.endswith('/pose') and not local)
-                  or p.topic_name == '/ego_motion/fused_pose')
+                  or p.topic_name.endswith('/ego_motion/fused_pose'))
     return subs_ok and pubs_ok
 
 
 class Worker:
-    def __init__(self, index: int, conn, params_file):
+    def __init__(self, index: int, conn, params_file, namespace: str = '/'):
         self.index = index
         self.conn = conn
         self.params_file = params_file
@@ -108,7 +109,7 @@ class Worker:
         self.frames_done = {}           # key -> frames finished (snapshot cadence)
         self.node = rclpy.create_node(
             f'ego_motion_worker_{index}' if index >= 0 else f'ego_motion_worker_spare_{os.getpid()}',
-            start_parameter_services=False,
+            namespace=namespace or '/', start_parameter_services=False,
             parameter_overrides=[Parameter('start_type_description_service', value=False)])
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
@@ -388,7 +389,10 @@ def main(argv=None):
     ap.add_argument('--index', type=int, required=True, help='worker index; -1: a hot spare')
     ap.add_argument('--control', required=True, help='address of the coordinator\'s control channel')
     ap.add_argument('--params-file')
-    args = ap.parse_args(argv)
+    ap.add_argument('--namespace', default='/', help='the graph\'s namespace (its remappings follow --ros-args)')
+    # --ros-args (the namespace's remappings) are rclpy.init's: it reads them from sys.argv
+    from rclpy.utilities import remove_ros_args
+    args = ap.parse_args(remove_ros_args(sys.argv if argv is None else ['worker', *argv])[1:])
     _die_with_parent()
     # The workers are the parallelism (like OPENBLAS_NUM_THREADS=1 from the coordinator):
     # OpenCV's own pool only oversubscribes the cores, and its work would escape the
@@ -413,7 +417,7 @@ def main(argv=None):
         profiler = cProfile.Profile(time.thread_time)   # CPU time: wall time charged other processes' turns to whatever ran
         profiler.enable()
     try:
-        Worker(args.index, conn, args.params_file).spin()
+        Worker(args.index, conn, args.params_file, args.namespace).spin()
     except (KeyboardInterrupt, SystemExit, ExternalShutdownException):
         pass
     finally:
