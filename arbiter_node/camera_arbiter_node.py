@@ -1,21 +1,26 @@
 """Camera arbiter (paper task T_k5): fuses one camera's quarter estimates into /<cam>/pose.
 
 Thin ROS shell over arbiter_node.quarter_fusion (robust, covariance-weighted). Lives in the
-camera's namespace; quarters publish /<cam>/q<l>/pose.
+camera's namespace; quarters publish /<cam>/q<l>/pose. With `debug_images` it also gathers the
+quarters' /<cam>/q<l>/tracks tiles by stamp and publishes them put together as /<cam>/tracks
+(sensor_msgs/Image, bgr8: camera_pose_nodes.track_image says why it is done this way).
 """
 import time
+
+import numpy as np
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
+from sensor_msgs.msg import Image
 
 from arbiter_node.quarter_fusion import fuse_quarters
 from arbiter_node.stamp_sync import StampSynchronizer
 from multicam_ego_motion import diagnostics
 from multicam_ego_motion.node_main import spin_node
 from multicam_ego_motion.node_parameters import declare_from_table
-from multicam_ego_motion.pose_messages import estimate_to_msg, msg_to_estimate, ns_to_stamp
-from multicam_ego_motion.qos import RELIABLE
+from multicam_ego_motion.pose_messages import estimate_to_msg, msg_to_estimate, ns_to_stamp, stamp_to_ns
+from multicam_ego_motion.qos import RELIABLE, RELIABLE_IMAGES
 
 # Timeouts only: the normal path is driven by messages. Every timer wake-up makes rclpy's
 # executor rebuild its wait set over all of the worker's entities, so poll slowly.
@@ -25,6 +30,7 @@ NODE_PARAMETERS = {
     'camera': ('front', 'name of the camera whose quarters this arbiter fuses', None, None),
     'quarters': (4, 'number of quarter nodes of this camera', 1, 4),
     'sync_timeout_s': (0.5, 'longest wait for all quarters of one frame', 0.0, 60.0),
+    'debug_images': (False, 'publish tracks (/<cam>/tracks, bgr8): the quarters\' debug images (their debug_images) put together, the tracked features, their flow and landmark/epipolar status drawn; off: nothing subscribed or published', None, None),
 }
 FUSION_PARAMETERS = {
     'outlier_chi2': (22.46, 'reject a quarter this far (6-dof Mahalanobis^2) from the robust reference', 1.0, 1e6),
@@ -48,6 +54,12 @@ class CameraArbiterNode(Node):
         self.estimate_sink = None
         self.sources = sources
         self.quarter_subs = {}
+        self.debug_images = bool(p['debug_images'])
+        self.tracks_subs = {}
+        if self.debug_images:
+            self.tracks_sync = StampSynchronizer(sources, p['sync_timeout_s'])
+            self.tile_sizes = {}         # quarter -> (width, height) of its tiles seen so far
+            self.pub_tracks = self.create_publisher(Image, 'tracks', RELIABLE_IMAGES)
         self.take_local(())
         self.poll_timer = self.create_timer(POLL_PERIOD_S, self.poll)
 
@@ -62,6 +74,13 @@ class CameraArbiterNode(Node):
             elif s not in local and sub is None:
                 self.quarter_subs[s] = self.create_subscription(
                     PoseWithCovarianceStamped, f'{s}/pose', lambda m, s=s: self.on_quarter(s, m), RELIABLE)
+            # debug_images: their tiles likewise
+            sub = self.tracks_subs.get(s)
+            if s in local and sub is not None:
+                self.destroy_subscription(self.tracks_subs.pop(s))
+            elif self.debug_images and s not in local and sub is None:
+                self.tracks_subs[s] = self.create_subscription(
+                    Image, f'{s}/tracks', lambda m, s=s: self.on_tracks(s, m), RELIABLE_IMAGES)
 
     def on_quarter(self, source, msg):
         est = msg_to_estimate(msg, source=f'{self.camera}/{source}')
@@ -70,7 +89,10 @@ class CameraArbiterNode(Node):
     def poll(self):
         """Sync timeouts; called every POLL_PERIOD_S by the node's own timer, or by its
         worker's one timer for all its nodes (worker.py)."""
-        self.release(self.sync.poll(time.monotonic()))
+        now = time.monotonic()
+        self.release(self.sync.poll(now))
+        if self.debug_images:
+            self.release_tracks(self.tracks_sync.poll(now))
 
     def release(self, groups):
         for g in groups:
@@ -92,6 +114,36 @@ class CameraArbiterNode(Node):
                 f'ego_motion/{self.camera}/arbiter', level, text,
                 {'quarters': len(g.items), 'state': fused.state, 'arbiter_ms': ms},
                 hardware_id=self.camera), self.diag_sink, self.pub_diag)
+
+    # --- debug_images ----------------------------------------------------------------------
+    def on_tracks(self, source, msg: Image):
+        """A quarter's tile (bgr8) of one frame."""
+        if msg.encoding != 'bgr8' or msg.step != 3 * msg.width \
+                or len(msg.data) != msg.step * msg.height:
+            self.get_logger().warning(f'{self.camera}: {source} tracks image ignored '
+                                      f'({msg.encoding} {msg.width}x{msg.height}, step {msg.step})',
+                                      throttle_duration_sec=5.0)
+            return
+        tile = np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.width, 3)
+        q = int(source[1:])
+        self.tile_sizes[q] = (msg.width, msg.height)
+        self.release_tracks(self.tracks_sync.add(source, stamp_to_ns(msg.header.stamp),
+                                                 (tile, msg.header.frame_id), time.monotonic()))
+
+    def release_tracks(self, groups):
+        from camera_pose_nodes.track_image import compose_quarters
+        for g in groups:
+            tiles = {int(s[1:]): tile for s, (tile, _) in g.items.items()}
+            img = compose_quarters(tiles, self.tile_sizes)
+            if img is None:
+                continue
+            msg = Image()
+            msg.header.stamp = ns_to_stamp(g.stamp_ns)
+            msg.header.frame_id = next(iter(g.items.values()))[1]
+            msg.height, msg.width = img.shape[:2]
+            msg.encoding, msg.step = 'bgr8', 3 * img.shape[1]
+            msg.data = img.tobytes()
+            self.pub_tracks.publish(msg)
 
 
 def main(args=None):

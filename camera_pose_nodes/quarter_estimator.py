@@ -57,6 +57,13 @@ def _members(a: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
     return sorted_set[i] == a
 
 
+# A track's status in the debug image (track_overlay, track_image): what it measures.
+TRACK_NEW = 0        # no landmark and no earlier view with a fused pose: measures nothing yet
+TRACK_EPIPOLAR = 1   # no landmark, an earlier fused view: its epipolar line (rotation only)
+TRACK_LANDMARK = 2   # a triangulated landmark: reprojection
+TRACK_FLOOR = 3      # a landmark placed on the floor (ground_plane): reprojection, metric depth
+
+
 # name -> (default, description, min, max). The node declares its ROS parameters from this.
 PARAMETERS = {
     'min_features': (40, "extract new features when fewer are tracked (paper's Min)", 4, 1000),
@@ -383,6 +390,31 @@ class QuarterEstimator:
     def twist(self):
         """(v in odom, w in base_link, 6x6 covariance of [v, w]) of the last estimate."""
         return self.ekf.twist
+
+    def track_overlay(self, trail: int = 5):
+        """What a debug image shows of the current tracks (read-only: nothing the estimate
+        depends on changes). Returns (trails (N, trail, 2) float32 full-image pixels, the
+        track's last `trail` views oldest first and the current one last, NaN where it has
+        fewer; status (N,) uint8 TRACK_*). Called after process_image: the landmarks then
+        are those its estimate used. TRACK_EPIPOLAR marks the tracks the epipolar update
+        takes up; it measures them once the body moved epipolar_min_baseline from that view."""
+        tr = self.tracker
+        N, H, K = len(tr.ids), tr.cfg.max_history, max(1, int(trail))
+        n = tr.hist_n
+        # slots 0..n-1 are consecutive views; once full, slot 0 is the oldest kept and
+        # slots 1..H-1 the consecutive latest
+        k = np.minimum(np.where(n < H, n, H - 1), K)
+        cols = n[:, None] - K + np.arange(K)[None, :]
+        trails = tr.hist_uv[np.arange(N)[:, None], np.clip(cols, 0, H - 1)].astype(np.float32)
+        trails[np.arange(K)[None, :] < (K - k)[:, None]] = np.nan
+        status = np.full(N, TRACK_NEW, np.uint8)
+        if self.params.epipolar and self.fused_poses:
+            fs = np.array(sorted(self.fused_poses), np.int64)
+            earlier = (np.arange(H)[None, :] < (n - 1)[:, None]) & _members(tr.hist_t, fs)
+            status[earlier.any(axis=1)] = TRACK_EPIPOLAR
+        has, r = self.landmarks.rows(tr.ids)
+        status[has] = np.where(self.landmarks.on_floor[r], TRACK_FLOOR, TRACK_LANDMARK)
+        return trails, status
 
     # ----- feedback from the general arbiter -----------------------------------------------
     def apply_fused_pose(self, stamp_ns: int, T_odom_base: np.ndarray, cov6: np.ndarray) -> float:

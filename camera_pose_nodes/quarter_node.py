@@ -3,7 +3,8 @@
 Thin ROS shell over camera_pose_nodes.quarter_estimator.QuarterEstimator. Subscribes the
 camera's image and CameraInfo and the general arbiter's fused pose (fed back for landmark
 triangulation); publishes `pose` (PoseWithCovarianceStamped, base_link in odom, in its own
-namespace /<cam>/q<l>) and its /diagnostics entry.
+namespace /<cam>/q<l>) and its /diagnostics entry; with `debug_images`, also `tracks` (its
+part of the image with its tracks drawn, for the camera arbiter's /<cam>/tracks: track_image).
 
 Frame ordering: the estimate of frame t+1 needs the fused pose of frame t. An image that
 arrives before that feedback waits (up to `feedback_timeout_s`), so that replay in lockstep
@@ -28,7 +29,7 @@ from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.node_main import spin_node
 from multicam_ego_motion.node_parameters import declare_from_table
 from multicam_ego_motion.pose_messages import estimate_to_msg, msg_to_estimate, stamp_to_ns
-from multicam_ego_motion.qos import LATCHED, RELIABLE, image_qos
+from multicam_ego_motion.qos import LATCHED, RELIABLE, RELIABLE_IMAGES, image_qos
 from multicam_ego_motion.rig import load_rig
 
 # Timeouts only: the normal path is driven by messages. Every timer wake-up makes rclpy's
@@ -43,6 +44,7 @@ NODE_PARAMETERS = {
     'fused_pose_topic': ('/ego_motion/fused_pose', 'general arbiter feedback topic', None, None),
     'feedback_timeout_s': (0.5, 'longest wait for the previous frame\'s fused pose', 0.0, 60.0),
     'frame_schedule_topic': ('/ego_motion/frame_schedule', 'which frames to process when the graph is behind the cameras (general arbiter)', None, None),
+    'debug_images': (False, 'publish tracks (bgr8): this quarter\'s part of the image with its features, their flow and landmark/epipolar status drawn, which the camera arbiter (debug_images too) puts together into /<cam>/tracks; off: nothing drawn or published', None, None),
 }
 
 
@@ -94,6 +96,10 @@ class QuarterNode(Node):
         # hook(msg) after publishing an estimate: a worker hands it to a co-hosted camera
         # arbiter directly (which then does not subscribe to it)
         self.estimate_sink = None
+        # debug_images: hook(msg) for the tracks tile, as estimate_sink (worker.py)
+        self.tracks_sink = None
+        self.pub_tracks = (self.create_publisher(Image, 'tracks', RELIABLE_IMAGES)
+                           if p['debug_images'] else None)
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'pose', RELIABLE)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         # topic -> (type, QoS, callback) of the per-frame inputs
@@ -267,6 +273,35 @@ class QuarterNode(Node):
             self.estimate_sink(msg)
         level = 'ok' if est.state == 'tracking' else 'warn'
         self.publish_diag(msg.header.stamp, level, est.state, est)
+        if self.pub_tracks is not None:
+            self.publish_tracks(msg.header.stamp, est)
+
+    def publish_tracks(self, stamp, est):
+        """debug_images: this frame's tile (track_image.quarter_tile), after the estimate
+        went out; drawn only when someone takes it."""
+        if self.tracks_sink is None and self.pub_tracks.get_subscription_count() == 0:
+            return
+        from camera_pose_nodes.track_image import TRAIL, quarter_tile
+        e = self.estimator
+        try:
+            trails, status = e.track_overlay(TRAIL)
+            tile = quarter_tile(e.tracker.prev_crop, e.region, trails, status,
+                                [f'q{self.quarter} {est.state}',
+                                 f'in {est.n_inliers}/{est.n_features} lm {est.n_landmarks}'])
+        except Exception as ex:   # a debug picture must never stop the odometry
+            self.get_logger().error(f'{self.source}: tracks image not drawn: {type(ex).__name__}: {ex}',
+                                    throttle_duration_sec=5.0)
+            return
+        msg = Image()
+        msg.header.stamp = stamp
+        msg.header.frame_id = self.camera.frame_id
+        msg.height, msg.width = tile.shape[:2]
+        msg.encoding, msg.step = 'bgr8', 3 * tile.shape[1]
+        msg.data = tile.tobytes()
+        if self.pub_tracks.get_subscription_count() > 0:
+            self.pub_tracks.publish(msg)
+        if self.tracks_sink is not None:
+            self.tracks_sink(msg)
 
     # --- hand-over between workers (coordinator) ------------------------------------------
     def idle(self) -> bool:

@@ -1,8 +1,9 @@
 """`ego-motion replay BAG --out DIR`: start the whole graph, play the bag through it, record
 what it publishes, and score the odometry against the bag's ground truth.
 
-Writes DIR/output (rosbag2 MCAP: /odom, /tf, quarter and camera estimates, /diagnostics),
-DIR/odometry.tum, and when the bag has ground truth DIR/report.md with plots.
+Writes DIR/output (rosbag2 MCAP: /odom, /tf, quarter and camera estimates, /diagnostics;
+with --debug-images also each camera's /<cam>/tracks), DIR/odometry.tum, and when the bag has
+ground truth DIR/report.md with plots.
 """
 import os
 import threading
@@ -36,6 +37,9 @@ def configure_parser(p):
                         'the odometry is the same for any N)')
     p.add_argument('--migrate-every', type=int, default=0, metavar='K',
                    help='debug (lockstep): move one quarter node to the next worker every K frames')
+    p.add_argument('--debug-images', action='store_true',
+                   help='draw the tracker (the nodes\' debug_images parameter) and record each '
+                        'camera\'s /<cam>/tracks: features, flow, landmark/epipolar status')
 
 
 def resolve_rig(bag_reader, rig_arg):
@@ -74,7 +78,7 @@ LOCKSTEP_SYNC_TIMEOUT_S = 10.0
 LOCKSTEP_DEPTH = 2
 
 
-def graph_overrides(lockstep: bool, use_wheel: bool):
+def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False):
     # Lockstep replay waits for everything (deterministic); rate mode must keep going.
     wait = 60.0 if lockstep else 0.3
     general = {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2,
@@ -85,18 +89,24 @@ def graph_overrides(lockstep: bool, use_wheel: bool):
                'use_sim_time': not lockstep}
     if lockstep:
         general['max_lag_s'] = 0.0
-    return {'quarter': {'image_qos': 'reliable' if lockstep else 'sensor_data',
-                        'feedback_timeout_s': wait},
-            'camera_arbiter': {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2},
-            'general_arbiter': general}
+    overrides = {'quarter': {'image_qos': 'reliable' if lockstep else 'sensor_data',
+                             'feedback_timeout_s': wait},
+                 'camera_arbiter': {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2},
+                 'general_arbiter': general}
+    if debug_images:          # (left out when off: the params file's value stands)
+        overrides['quarter']['debug_images'] = True
+        overrides['camera_arbiter']['debug_images'] = True
+    return overrides
 
 
-def recorded_topics(rig):
+def recorded_topics(rig, debug_images: bool = False):
     topics = ['/odom', '/tf', '/ego_motion/fused_pose', '/ego_motion/path', '/ego_motion/frame_schedule',
               '/diagnostics']
     for c in rig.cameras:
         topics.append(f'/{c.name}/pose')
         topics += [f'/{c.name}/q{q}/pose' for q in range(1, 5)]
+        if debug_images:
+            topics.append(f'/{c.name}/tracks')
     return topics
 
 
@@ -182,7 +192,7 @@ def make_link_waiter(rig, player, timeout_s=2.0):
 def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rate=1.0,
               use_wheel=True, ack_timeout=120.0, start_offset=0.0, duration=None,
               migrate_every=0, rebalance=True, logger=print, record_topics=None,
-              lockstep_depth=LOCKSTEP_DEPTH) -> GraphRun:
+              lockstep_depth=LOCKSTEP_DEPTH, debug_images=False) -> GraphRun:
     """Coordinator + in-process player and recorder: one run of the graph over a bag."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -200,7 +210,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
 
     reader = Rosbag2Reader(bag)
     coordinator = Coordinator(rig, Path(rig_file).resolve(), Path(params).resolve(), workers=workers,
-                              overrides=graph_overrides(lockstep, use_wheel), log_dir=out / 'logs',
+                              overrides=graph_overrides(lockstep, use_wheel, debug_images), log_dir=out / 'logs',
                               rebalance=rebalance, migrate_every=migrate_every, logger=logger)
     # No rclpy signal handlers: on Ctrl-C they invalidate the context under the spinning
     # thread. SIGINT, SIGTERM and SIGHUP raise interrupt.Interrupted here (the command line
@@ -240,7 +250,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
                             raise
 
             spinner = threading.Thread(target=spin, daemon=True, name='spin')
-            recorder = BagRecorder(out_bag, topics=record_topics or recorded_topics(rig))
+            recorder = BagRecorder(out_bag, topics=record_topics or recorded_topics(rig, debug_images))
             node.create_subscription(Odometry, '/odom', lambda data: received.setdefault(
                 header_stamp_ns(data), time.monotonic()), RELIABLE, raw=True)
         coordinator.start()
@@ -331,7 +341,8 @@ def run(args) -> int:
                   rate=args.rate or 1.0, use_wheel=not args.no_wheel, ack_timeout=args.ack_timeout,
                   start_offset=args.start_offset, duration=args.duration,
                   migrate_every=args.migrate_every, rebalance=not args.no_rebalance,
-                  logger=lambda t: print(t, flush=True), lockstep_depth=args.lockstep_depth)
+                  logger=lambda t: print(t, flush=True), lockstep_depth=args.lockstep_depth,
+                  debug_images=args.debug_images)
     st = g.coordinator.stats
     print(f'coordinator: {st.migrations} migrations ({st.rebalances} rebalances), '
           f'{st.restarts} worker restarts'

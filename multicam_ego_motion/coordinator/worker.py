@@ -167,10 +167,10 @@ class Worker:
                 del self.feeds[topic]
 
     def wire_local(self):
-        """Quarter estimates go to a camera arbiter of the same worker by a call, and camera
-        estimates to a general arbiter of the same worker (they are still published when
-        anyone else listens: the recorder, a viewer); an arbiter subscribes only to its
-        sources hosted elsewhere. Redone whenever a node comes or goes."""
+        """Quarter estimates (and debug_images tiles) go to a camera arbiter of the same
+        worker by a call, and camera estimates to a general arbiter of the same worker (they
+        are still published when anyone else listens: the recorder, a viewer); an arbiter
+        subscribes only to its sources hosted elsewhere. Redone whenever a node comes or goes."""
         arbiters = {n.camera: n for k, n in self.hosted.items() if self.kinds[k] == 'camera_arbiter'}
         local = {}
         for k, n in self.hosted.items():
@@ -179,6 +179,9 @@ class Worker:
             arb = arbiters.get(n.camera.name)
             source = f'q{n.quarter}'
             n.estimate_sink = None if arb is None else (lambda msg, a=arb, s=source: a.on_quarter(s, msg))
+            # debug_images: the tracks tile the same way, when both draw them
+            n.tracks_sink = (None if arb is None or not arb.debug_images or n.pub_tracks is None
+                             else (lambda msg, a=arb, s=source: a.on_tracks(s, msg)))
             local.setdefault(n.camera.name, set()).add(source)
         for cam, arb in arbiters.items():
             arb.take_local(local.get(cam, set()))
