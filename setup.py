@@ -52,7 +52,7 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
-        # found through the ament index at run time (multicam_ego_motion/package_share.py)
+        # found through the ament index at run time (multicam_ego_motion/ros_plumbing/package_share.py)
         ('share/' + package_name + '/config', glob('config/*.yaml') + glob('config/*.xml')),
         # `ros2 launch multicam_ego_motion multicam_ego_motion.launch.py`
         ('share/' + package_name + '/launch', glob('launch/*.launch.py')),

@@ -3,7 +3,7 @@
 Error state x (12): p (odom, m), dtheta (odom, rad; multiplicative about a nominal rotation
 R_nom, folded into R_nom and zeroed after every predict and update, so it stays small),
 v (base_link, m/s; Nav2 wants twist in base_link), w (base_link, rad/s).
-Pose convention is multicam_ego_motion.se3: p = p_hat + dp, R = exp([dtheta]x) R_hat.
+Pose convention is multicam_ego_motion.geometry.se3: p = p_hat + dp, R = exp([dtheta]x) R_hat.
 
 Process model: constant body twist, p' = p + R J(w dt) v dt (the arc; J = SO(3) left
 Jacobian), R' = R exp(w dt), with white linear and angular acceleration noise in the body
@@ -28,7 +28,7 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
 from arbiter_node.covariance import condition_covariance, mahalanobis2
-from multicam_ego_motion import se3
+from multicam_ego_motion.geometry import se3
 
 MAX_VARIANCE = 1e8          # ~10 km / 1e4 rad std: beyond this the state means nothing anyway
 

@@ -16,11 +16,11 @@ from sensor_msgs.msg import Image
 
 from arbiter_node.quarter_fusion import fuse_quarters
 from arbiter_node.stamp_sync import StampSynchronizer
-from multicam_ego_motion import diagnostics
-from multicam_ego_motion.node_main import spin_node
-from multicam_ego_motion.node_parameters import declare_from_table
-from multicam_ego_motion.pose_messages import estimate_to_msg, msg_to_estimate, ns_to_stamp, stamp_to_ns
-from multicam_ego_motion.qos import RELIABLE, RELIABLE_IMAGES
+from multicam_ego_motion.ros_plumbing import diagnostics
+from multicam_ego_motion.ros_plumbing.node_main import spin_node
+from multicam_ego_motion.ros_plumbing.node_parameters import declare_from_table
+from multicam_ego_motion.ros_plumbing.pose_messages import estimate_to_msg, msg_to_estimate, ns_to_stamp, stamp_to_ns
+from multicam_ego_motion.ros_plumbing.qos import RELIABLE, RELIABLE_IMAGES
 
 # Timeouts only: the normal path is driven by messages. Every timer wake-up makes rclpy's
 # executor rebuild its wait set over all of the worker's entities, so poll slowly.

@@ -22,7 +22,7 @@ import numpy as np
 from arbiter_node.covariance import mahalanobis2
 from arbiter_node.quarter_fusion import CHI2_6DOF_999
 from camera_pose_nodes.pose_estimate import PoseEstimate
-from multicam_ego_motion import se3
+from multicam_ego_motion.geometry import se3
 
 
 @dataclass

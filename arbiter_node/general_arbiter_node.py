@@ -24,16 +24,16 @@ from arbiter_node.path_history import PathHistory
 from arbiter_node.stamp_sync import StampSynchronizer
 from arbiter_node.wheel_prior import WheelBuffer, twist_from_odometry
 from camera_pose_nodes.pose_estimate import PoseEstimate
-from multicam_ego_motion import diagnostics
+from multicam_ego_motion.ros_plumbing import diagnostics
 from multicam_ego_motion.errors import UserError
-from multicam_ego_motion.node_main import spin_node
-from multicam_ego_motion.node_parameters import declare_from_table
-from multicam_ego_motion.pose_messages import (covariance_field, estimate_to_msg, fill_pose,
+from multicam_ego_motion.ros_plumbing.node_main import spin_node
+from multicam_ego_motion.ros_plumbing.node_parameters import declare_from_table
+from multicam_ego_motion.ros_plumbing.pose_messages import (covariance_field, estimate_to_msg, fill_pose,
                                                msg_to_estimate, ns_to_stamp, stamp_to_ns,
                                                transform_msg)
-from multicam_ego_motion.qos import LATCHED, RELIABLE
-from multicam_ego_motion.rig import load_rig
-from multicam_ego_motion.se3 import is_valid_covariance
+from multicam_ego_motion.ros_plumbing.qos import LATCHED, RELIABLE
+from multicam_ego_motion.geometry.rig import load_rig
+from multicam_ego_motion.geometry.se3 import is_valid_covariance
 
 # Timeouts only: the normal path is driven by messages. Every timer wake-up makes rclpy's
 # executor rebuild its wait set over all of the worker's entities, so poll slowly.

@@ -18,7 +18,7 @@ from arbiter_node.covariance import condition_covariance
 from arbiter_node.quarter_fusion import CHI2_6DOF_999, information_fusion
 from arbiter_node.rig_scale import RigScaleResult, relative_motion, scale_correction, solve_rig_translation
 from camera_pose_nodes.pose_estimate import PoseEstimate
-from multicam_ego_motion.rig import Rig
+from multicam_ego_motion.geometry.rig import Rig
 
 FUSED_STATES = ('initializing', 'tracking', 'lost', 'dead_reckoning')
 

@@ -10,7 +10,7 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 
-from multicam_ego_motion import se3
+from multicam_ego_motion.geometry import se3
 
 
 class PathHistory:

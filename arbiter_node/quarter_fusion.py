@@ -20,7 +20,7 @@ from scipy.stats import chi2
 
 from arbiter_node.covariance import condition_covariance, safe_inverse
 from camera_pose_nodes.pose_estimate import UNINFORMATIVE_VARIANCE, PoseEstimate, uninformative
-from multicam_ego_motion import se3
+from multicam_ego_motion.geometry import se3
 
 CHI2_6DOF_999 = float(chi2.ppf(0.999, 6))   # 22.46
 DEFAULT_CORRELATION = 0.5

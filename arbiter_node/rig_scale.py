@@ -19,7 +19,7 @@ from typing import Dict, Optional, Sequence
 
 import numpy as np
 
-from multicam_ego_motion import se3
+from multicam_ego_motion.geometry import se3
 
 
 @dataclass

@@ -4,7 +4,7 @@ Error state x (12): p (body position, odom), dtheta (orientation error, odom fra
 as R = exp([dtheta]x) R_nom about a nominal rotation kept outside the state), v (linear
 velocity, odom), w (angular velocity, body frame). dtheta is folded into R_nom after every
 predict/update ("re-centred"), so it is zero between steps and the pose covariance block
-P[:6, :6] is directly in the multicam_ego_motion.se3 convention.
+P[:6, :6] is directly in the multicam_ego_motion.geometry.se3 convention.
 
 Measurement: normalized, undistorted image coordinates of tracked features whose landmark X
 (odom) is known, h = pi(R_cam^T (X - p_cam)) with T_odom_cam = T_odom_base T_base_cam. The
@@ -18,7 +18,7 @@ from filterpy.kalman import ExtendedKalmanFilter
 
 from camera_pose_nodes import kernel
 from camera_pose_nodes.camera_model import projection_jacobian
-from multicam_ego_motion.se3 import make_T, R_to_rotvec, rotvec_to_R
+from multicam_ego_motion.geometry.se3 import make_T, R_to_rotvec, rotvec_to_R
 
 DIM = 12
 P_, TH, V_, W_ = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)

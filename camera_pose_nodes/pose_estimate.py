@@ -2,7 +2,7 @@
 
 A quarter node produces it, the camera arbiter fuses quarters' into the camera's, the
 general arbiter fuses cameras' into odometry. Pose is base_link in odom (4x4); covariance is
-6x6 in the multicam_ego_motion.se3 convention (x, y, z, rot x, rot y, rot z, odom frame).
+6x6 in the multicam_ego_motion.geometry.se3 convention (x, y, z, rot x, rot y, rot z, odom frame).
 """
 from dataclasses import dataclass, field
 from typing import Dict

@@ -25,8 +25,8 @@ from camera_pose_nodes.pose_ekf import PoseEKF
 from camera_pose_nodes.pose_estimate import PoseEstimate, UNINFORMATIVE_VARIANCE, uninformative
 from camera_pose_nodes.quarter_region import QuarterRegion
 from multicam_ego_motion.errors import UserError
-from multicam_ego_motion.rig import CameraMount
-from multicam_ego_motion.se3 import rotvec_to_R
+from multicam_ego_motion.geometry.rig import CameraMount
+from multicam_ego_motion.geometry.se3 import rotvec_to_R
 
 STATE_VERSION = 6     # 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays; 6: motion
 STAGES = ('acquire', 'extract', 'track', 'pose', 'structure')

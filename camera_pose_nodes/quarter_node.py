@@ -24,13 +24,13 @@ from camera_pose_nodes.camera_model import intrinsics_from_msg
 from camera_pose_nodes.frame_schedule import FrameSchedule, ScheduleBook
 from camera_pose_nodes.image_conversion import image_msg_to_gray
 from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, QuarterParams
-from multicam_ego_motion import diagnostics
+from multicam_ego_motion.ros_plumbing import diagnostics
 from multicam_ego_motion.errors import UserError
-from multicam_ego_motion.node_main import spin_node
-from multicam_ego_motion.node_parameters import declare_from_table
-from multicam_ego_motion.pose_messages import estimate_to_msg, msg_to_estimate, stamp_to_ns
-from multicam_ego_motion.qos import LATCHED, RELIABLE, RELIABLE_IMAGES, image_qos
-from multicam_ego_motion.rig import load_rig
+from multicam_ego_motion.ros_plumbing.node_main import spin_node
+from multicam_ego_motion.ros_plumbing.node_parameters import declare_from_table
+from multicam_ego_motion.ros_plumbing.pose_messages import estimate_to_msg, msg_to_estimate, stamp_to_ns
+from multicam_ego_motion.ros_plumbing.qos import LATCHED, RELIABLE, RELIABLE_IMAGES, image_qos
+from multicam_ego_motion.geometry.rig import load_rig
 
 # Timeouts only: the normal path is driven by messages. Every timer wake-up makes rclpy's
 # executor rebuild its wait set over all of the worker's entities, so poll slowly.

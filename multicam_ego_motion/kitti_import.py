@@ -17,11 +17,11 @@ import numpy as np
 from tqdm import tqdm
 
 from multicam_ego_motion.bag.rig_bag_writer import STAMP_EPOCH_NS, RigBagWriter
-from multicam_ego_motion.camera_intrinsics import CameraIntrinsics
+from multicam_ego_motion.geometry.camera_intrinsics import CameraIntrinsics
 from multicam_ego_motion.errors import UserError
-from multicam_ego_motion.rig import CameraMount, Rig, optical_rotation
+from multicam_ego_motion.geometry.rig import CameraMount, Rig, optical_rotation
 from multicam_ego_motion.scenarios.wheel_odometry import WheelOdometry
-from multicam_ego_motion.se3 import R_to_rotvec, inv_T, make_T, rotvec_to_R
+from multicam_ego_motion.geometry.se3 import R_to_rotvec, inv_T, make_T, rotvec_to_R
 
 log = logging.getLogger(__name__)
 

@@ -44,7 +44,7 @@ def configure_parser(p):
 
 def resolve_rig(bag_reader, rig_arg):
     from multicam_ego_motion.bag.rig_from_tf import rig_from_bag
-    from multicam_ego_motion.rig import load_rig
+    from multicam_ego_motion.geometry.rig import load_rig
     if rig_arg:
         return load_rig(rig_arg), Path(rig_arg)
     beside = Path(bag_reader.path) / 'rig.yaml'
@@ -204,8 +204,8 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
     from multicam_ego_motion.bag.recorder import BagRecorder
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
     from multicam_ego_motion.coordinator.coordinator import Coordinator
-    from multicam_ego_motion.lean_node import LeanNode
-    from multicam_ego_motion.qos import RELIABLE
+    from multicam_ego_motion.ros_plumbing.lean_node import LeanNode
+    from multicam_ego_motion.ros_plumbing.qos import RELIABLE
     from nav_msgs.msg import Odometry
 
     reader = Rosbag2Reader(bag)
@@ -305,7 +305,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
 
 
 def run(args) -> int:
-    from multicam_ego_motion import dds_transport, package_share, ros_domain
+    from multicam_ego_motion.ros_plumbing import dds_transport, package_share, ros_domain
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
     from multicam_ego_motion.replay_summary import summarize
 

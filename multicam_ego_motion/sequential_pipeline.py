@@ -23,7 +23,7 @@ from camera_pose_nodes.pose_estimate import PoseEstimate
 from camera_pose_nodes.quarter_estimator import QuarterEstimator, QuarterParams
 from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
 from multicam_ego_motion.errors import UserError
-from multicam_ego_motion.pose_messages import estimate_to_msg, msg_to_estimate, stamp_to_ns
+from multicam_ego_motion.ros_plumbing.pose_messages import estimate_to_msg, msg_to_estimate, stamp_to_ns
 
 
 @dataclass

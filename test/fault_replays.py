@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 import fault_injection as fi
-from multicam_ego_motion import ros_domain
+from multicam_ego_motion.ros_plumbing import ros_domain
 from replay_run import replay, replay_env
 
 SECONDS = 6

@@ -13,7 +13,7 @@ import yaml
 import process_table
 from conftest import REPO
 from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
-from multicam_ego_motion.pose_messages import pose_to_T, stamp_to_ns
+from multicam_ego_motion.ros_plumbing.pose_messages import pose_to_T, stamp_to_ns
 
 NS = 1_000_000_000
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from arbiter_node.body_ekf import BodyEKF, BodyEkfParams
-from multicam_ego_motion import se3
+from multicam_ego_motion.geometry import se3
 
 POSE_COV = np.diag([0.01, 0.01, 0.01, 0.005, 0.005, 0.005]) ** 2
 

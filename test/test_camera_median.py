@@ -2,7 +2,7 @@ import numpy as np
 
 from arbiter_node.camera_median import median_filter, median_pose, weiszfeld
 from camera_pose_nodes.pose_estimate import PoseEstimate, uninformative
-from multicam_ego_motion import se3
+from multicam_ego_motion.geometry import se3
 
 T0 = se3.make_T(se3.rotvec_to_R([0.0, 0.0, 1.2]), [3.0, -1.0, 0.0])
 COV = np.diag([0.03, 0.03, 0.03, 0.01, 0.01, 0.01]) ** 2

@@ -203,7 +203,7 @@ def test_junit_xml_is_well_formed_and_names_bag_and_figure(tmp_path):
 @pytest.fixture
 def fake_replay(monkeypatch):
     """`ego-motion check` in this process, each bag's replay giving figures[name]."""
-    from multicam_ego_motion import dds_transport
+    from multicam_ego_motion.ros_plumbing import dds_transport
     figures = {}
     monkeypatch.setattr(dds_transport, 'use_graph_profile', lambda env=None: False)
     monkeypatch.setattr(command, 'prepare',

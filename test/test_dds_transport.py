@@ -1,7 +1,7 @@
 """The graph's Fast DDS profile: set for the graph's processes unless the user chose one."""
 import xml.etree.ElementTree as ET
 
-from multicam_ego_motion import dds_transport
+from multicam_ego_motion.ros_plumbing import dds_transport
 
 NS = '{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}'
 

@@ -9,7 +9,7 @@ import pytest
 from camera_pose_nodes.track_image import COLORS
 from conftest import REPO, read_bag, run_cli
 from multicam_ego_motion.replay import graph_overrides, recorded_topics
-from multicam_ego_motion.rig import load_rig
+from multicam_ego_motion.geometry.rig import load_rig
 
 DEFAULT_BAG = REPO / 'bags' / 'default'
 RIG = DEFAULT_BAG / 'rig.yaml'

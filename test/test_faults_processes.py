@@ -16,7 +16,7 @@ from mcap.stream_reader import StreamReader
 
 import fault_injection as fi
 import process_table
-from multicam_ego_motion import ros_domain
+from multicam_ego_motion.ros_plumbing import ros_domain
 from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
 from replay_run import ReplayRun, recorded_counts, replay_env, start_replay, wait_for_odom
 from test_faults_bags import assert_one_line_error

@@ -6,8 +6,8 @@ import pytest
 from arbiter_node.general_fusion import PARAMETERS, GeneralFusion, default_params
 from arbiter_node.rig_scale import camera_direction, relative_motion
 from camera_pose_nodes.pose_estimate import PoseEstimate, uninformative
-from multicam_ego_motion import se3
-from multicam_ego_motion.rig import paper_rig
+from multicam_ego_motion.geometry import se3
+from multicam_ego_motion.geometry.rig import paper_rig
 
 RIG = paper_rig()
 COV = np.diag([0.02, 0.02, 0.02, 0.01, 0.01, 0.01]) ** 2

@@ -9,7 +9,7 @@ from conftest import REPO
 from multicam_ego_motion.coordinator.graph_spec import (graph_nodes, normalize_namespace, remappings,
                                                         ros_args, topic_parameter_values, under)
 from multicam_ego_motion.coordinator.worker import create_node
-from multicam_ego_motion.rig import load_rig
+from multicam_ego_motion.geometry.rig import load_rig
 
 RIG = REPO / 'config' / 'rig_default.yaml'
 PARAMS = REPO / 'config' / 'params.yaml'

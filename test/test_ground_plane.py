@@ -3,7 +3,7 @@ import numpy as np
 
 from camera_pose_nodes.ground_plane import floor_plane, floor_points, snap_to_floor
 from camera_pose_nodes.landmark_map import bearings_odom
-from multicam_ego_motion import se3
+from multicam_ego_motion.geometry import se3
 
 HEIGHT = 0.5
 # a forward-looking optical frame (z forward, x right, y down) on a body at the origin

@@ -56,7 +56,7 @@ def test_share_holds_config_and_launch_as_in_the_source(install_prefix):
 
 def test_modules_and_config_come_from_the_install_space(install_prefix, tmp_path):
     code = ('import camera_pose_nodes, arbiter_node, multicam_ego_motion\n'
-            'from multicam_ego_motion import dds_transport, package_share\n'
+            'from multicam_ego_motion.ros_plumbing import dds_transport, package_share\n'
             'for m in (camera_pose_nodes, arbiter_node, multicam_ego_motion): print(m.__file__)\n'
             'print(package_share.share_dir()); print(package_share.default_params()); print(dds_transport.profile())\n')
     proc = subprocess.run([sys.executable, '-c', code], cwd=tmp_path, env=installed_env(install_prefix),

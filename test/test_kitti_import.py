@@ -10,7 +10,7 @@ from conftest import read_bag
 
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.kitti_import import import_kitti
-from multicam_ego_motion.rig import load_rig
+from multicam_ego_motion.geometry.rig import load_rig
 
 REPO = Path(__file__).resolve().parents[1]
 KITTI_CANDIDATES = (Path('/work/shared/datasets/kitti_seq1'),

@@ -2,7 +2,7 @@
 import numpy as np
 
 from camera_pose_nodes.landmark_map import LandmarkMap
-from multicam_ego_motion import se3
+from multicam_ego_motion.geometry import se3
 
 F_PX = 400.0
 

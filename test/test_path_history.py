@@ -2,7 +2,7 @@
 import numpy as np
 
 from arbiter_node.path_history import PathHistory
-from multicam_ego_motion import se3
+from multicam_ego_motion.geometry import se3
 
 S = 1_000_000_000
 

@@ -3,8 +3,8 @@ import numpy as np
 
 from camera_pose_nodes.landmark_map import LandmarkMap
 from camera_pose_nodes.pose_ekf import PoseEKF
-from multicam_ego_motion import se3
-from multicam_ego_motion.rig import paper_rig
+from multicam_ego_motion.geometry import se3
+from multicam_ego_motion.geometry.rig import paper_rig
 
 RATE = 30.0
 F_PX = 400.0

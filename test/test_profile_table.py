@@ -143,7 +143,7 @@ def test_closures_of_a_root_belong_to_it(tmp_path):
     (('/v/site-packages/geometry_msgs/msg/_quaternion.py', 1, 'z'), ROSMSG),
     (('/v/site-packages/mcap/reader.py', 1, 'iter_messages'), ROSMSG),
     (('/r/multicam_ego_motion/bag/rosbag2_reader.py', 1, 'decoded'), ROSMSG),
-    (('/r/multicam_ego_motion/pose_messages.py', 1, 'estimate_to_msg'), ROSMSG),
+    (('/r/multicam_ego_motion/ros_plumbing/pose_messages.py', 1, 'estimate_to_msg'), ROSMSG),
     (('/r/camera_pose_nodes/quarter_estimator.py', 1, '_triangulate'), PYTHON),
     (('/v/site-packages/yaml/reader.py', 1, 'forward'), None),
 ])

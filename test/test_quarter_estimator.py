@@ -7,9 +7,9 @@ import pytest
 
 from camera_pose_nodes.camera_model import CameraIntrinsics
 from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, QuarterParams
-from multicam_ego_motion import se3
+from multicam_ego_motion.geometry import se3
 from multicam_ego_motion.errors import UserError
-from multicam_ego_motion.rig import paper_rig
+from multicam_ego_motion.geometry.rig import paper_rig
 
 W, H, F = 640, 480, 400.0
 RATE = 30.0

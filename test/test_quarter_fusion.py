@@ -3,7 +3,7 @@ import pytest
 
 from arbiter_node.quarter_fusion import fuse_quarters, fuse_quarters_report, information_fusion
 from camera_pose_nodes.pose_estimate import UNINFORMATIVE_VARIANCE, PoseEstimate, uninformative
-from multicam_ego_motion import se3
+from multicam_ego_motion.geometry import se3
 
 T_TRUE = se3.make_T(se3.rotvec_to_R([0.02, -0.01, 0.7]), [1.0, 2.0, 0.1])
 SIG = np.array([0.02, 0.02, 0.02, 0.01, 0.01, 0.01])

@@ -7,9 +7,9 @@ from camera_pose_nodes import kernel
 from camera_pose_nodes.landmark_map import LandmarkMap
 from camera_pose_nodes.pose_ekf import PoseEKF
 from camera_pose_nodes.quarter_estimator import QuarterEstimator
-from multicam_ego_motion import se3
+from multicam_ego_motion.geometry import se3
 from multicam_ego_motion.errors import UserError
-from multicam_ego_motion.rig import paper_rig
+from multicam_ego_motion.geometry.rig import paper_rig
 from test_landmark_map import views
 from test_quarter_estimator import N_TRUE, PARAMS, scene, step  # noqa: F401  (scene: fixture)
 

@@ -6,8 +6,8 @@ import pytest
 from camera_pose_nodes.pose_estimate import PoseEstimate
 from camera_pose_nodes.quarter_node import decode_fused
 from conftest import REPO
-from multicam_ego_motion.pose_messages import estimate_to_msg, stamp_to_ns
-from multicam_ego_motion.se3 import make_T, rotvec_to_R
+from multicam_ego_motion.ros_plumbing.pose_messages import estimate_to_msg, stamp_to_ns
+from multicam_ego_motion.geometry.se3 import make_T, rotvec_to_R
 
 
 def fused_msg(stamp_ns, x):

@@ -3,8 +3,8 @@ import pytest
 
 from arbiter_node.rig_scale import (camera_direction, relative_motion, scale_correction,
                                     solve_rig_translation)
-from multicam_ego_motion import se3
-from multicam_ego_motion.rig import paper_rig
+from multicam_ego_motion.geometry import se3
+from multicam_ego_motion.geometry.rig import paper_rig
 
 C = [c.translation for c in paper_rig().cameras]
 T1 = se3.make_T(se3.rotvec_to_R([0.0, 0.0, 0.4]), [2.0, 1.0, 0.0])

@@ -11,7 +11,7 @@ from conftest import read_bag
 
 from multicam_ego_motion.bag.rig_bag_writer import STAMP_EPOCH_NS
 from multicam_ego_motion.errors import UserError
-from multicam_ego_motion.rig import load_rig
+from multicam_ego_motion.geometry.rig import load_rig
 from multicam_ego_motion.scenarios.generator import evenly_spaced_rig, generate
 from multicam_ego_motion.scenarios.scene import scene_for
 from multicam_ego_motion.scenarios.trajectories import SCENARIOS
@@ -174,7 +174,7 @@ def test_rig_layouts():
 def test_rig_floor_is_saved_loaded_and_checked(tmp_path):
     """Generated rigs stand on the renderer's floor (floor_z 0 in base_link); a rig file
     without floor_z has no floor (floor landmarks and planar motion off); a NaN is rejected."""
-    from multicam_ego_motion.rig import load_rig, parse_rig
+    from multicam_ego_motion.geometry.rig import load_rig, parse_rig
     rig = evenly_spaced_rig(3)
     assert rig.floor_z == 0.0
     rig.save(tmp_path / 'rig.yaml')

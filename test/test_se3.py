@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from multicam_ego_motion.se3 import R_to_rotvec, pose_error, perturb
+from multicam_ego_motion.geometry.se3 import R_to_rotvec, pose_error, perturb
 
 
 @pytest.mark.parametrize('angle', [0.0, 1e-12, 1e-9, 1e-6, 1e-3, 0.1, 1.0, 2.0, 3.0,
@@ -28,7 +28,7 @@ def test_pose_error_inverts_perturb():
 def test_quaternion_conversions_have_scipys_bits():
     # pose messages go through these in the graph and in the sequential pipeline alike; they
     # write scipy's operations out, so the odometry does not depend on which one ran
-    from multicam_ego_motion.se3 import R_to_quat_xyzw, quat_xyzw_to_R, rotvec_to_R
+    from multicam_ego_motion.geometry.se3 import R_to_quat_xyzw, quat_xyzw_to_R, rotvec_to_R
     rng = np.random.default_rng(3)
     for k in range(3000):
         if k % 3 == 0:

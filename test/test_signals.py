@@ -37,7 +37,7 @@ from multicam_ego_motion import interrupt
 from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader, scan_mcap
 from multicam_ego_motion.bag.rosbag2_writer import Rosbag2Writer
 from multicam_ego_motion.errors import UserError
-from multicam_ego_motion.pose_messages import stamp_to_ns
+from multicam_ego_motion.ros_plumbing.pose_messages import stamp_to_ns
 from replay_run import recorded_counts, replay_env, start_replay, wait_for_odom
 
 DEFAULT_BAG = REPO / 'bags' / 'default'   # 20 s: long enough that no signal comes after its end

@@ -13,7 +13,7 @@ import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
 from multicam_ego_motion.bag.rosbag2_writer import Rosbag2Writer
-from multicam_ego_motion.se3 import R_to_quat_xyzw
+from multicam_ego_motion.geometry.se3 import R_to_quat_xyzw
 
 # Header stamps of generated and imported bags start here (2024-01-01T00:00:00Z), so that
 # runs are reproducible byte for byte and never mistaken for wall-clock time.

@@ -3,7 +3,7 @@
 import numpy as np
 
 from multicam_ego_motion.errors import UserError
-from multicam_ego_motion.rig import CameraMount, Rig, rotation_from_quaternion
+from multicam_ego_motion.geometry.rig import CameraMount, Rig, rotation_from_quaternion
 
 
 def rig_from_bag(reader, base_frame: str = 'base_link') -> Rig:

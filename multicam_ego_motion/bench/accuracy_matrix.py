@@ -59,7 +59,7 @@ def run(args) -> int:
     from multicam_ego_motion.ablation import score
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
     from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
-    from multicam_ego_motion.package_share import default_params
+    from multicam_ego_motion.ros_plumbing.package_share import default_params
     from multicam_ego_motion.replay import resolve_rig
     from multicam_ego_motion.sequential_pipeline import run_sequential
 

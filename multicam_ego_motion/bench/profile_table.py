@@ -359,7 +359,7 @@ def run(args) -> int:
 
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
     from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
-    from multicam_ego_motion.package_share import default_params
+    from multicam_ego_motion.ros_plumbing.package_share import default_params
     from multicam_ego_motion.replay import resolve_rig
 
     if args.frames is not None and args.frames < 1:
@@ -451,7 +451,7 @@ def run(args) -> int:
 def _graph_transport(args, out, rig, rig_file, params, window, n_frames, player):
     """(graph CPU per frame, workers, player+recorder+coordinator, frames) of a lockstep run
     at M = 2 over the profiled frames."""
-    from multicam_ego_motion import dds_transport, ros_domain
+    from multicam_ego_motion.ros_plumbing import dds_transport, ros_domain
     from multicam_ego_motion.replay import run_graph
     ros_domain.isolate()
     dds_transport.use_graph_profile()

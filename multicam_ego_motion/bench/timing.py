@@ -61,10 +61,10 @@ def stage_medians(statuses, cameras):
 
 
 def run(args) -> int:
-    from multicam_ego_motion import dds_transport, ros_domain
+    from multicam_ego_motion.ros_plumbing import dds_transport, ros_domain
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
     from multicam_ego_motion.bench.measures import bag_window
-    from multicam_ego_motion.package_share import default_params
+    from multicam_ego_motion.ros_plumbing.package_share import default_params
     from multicam_ego_motion.replay import resolve_rig
 
     ros_domain.isolate()

@@ -16,8 +16,8 @@ from typing import Optional
 
 PACKAGE = Path(__file__).resolve().parent.parent
 # What the rendered bytes depend on.
-RENDER_SOURCES = ('scenarios', 'bag/rig_bag_writer.py', 'bag/rosbag2_writer.py', 'rig.py',
-                  'camera_intrinsics.py')
+RENDER_SOURCES = ('scenarios', 'bag/rig_bag_writer.py', 'bag/rosbag2_writer.py', 'geometry/rig.py',
+                  'geometry/camera_intrinsics.py')
 
 
 @dataclass(frozen=True)

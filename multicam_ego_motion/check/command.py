@@ -76,7 +76,8 @@ def prepare(entry: BagEntry, suite, cache: Path, label: str) -> PreparedBag:
     """Generate the bag when the suite describes it by scenario, and check it can be
     replayed and scored; errors name the suite and the bag entry."""
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
-    from multicam_ego_motion.replay import DEFAULT_PARAMS, check_camera_topic_types, resolve_rig
+    from multicam_ego_motion.replay import check_camera_topic_types, resolve_rig
+    from multicam_ego_motion.ros_plumbing.package_share import default_params
     try:
         if entry.generate is not None:
             if not is_complete(cached_bag(cache, entry.generate)):
@@ -93,7 +94,7 @@ def prepare(entry: BagEntry, suite, cache: Path, label: str) -> PreparedBag:
             raise UserError(f'bag {bag} has no {entry.ground_truth_topic}: nothing to score against')
     except UserError as e:
         raise UserError(f'{suite.path}: bag {entry.name}: {e}') from None
-    return PreparedBag(entry, Path(bag), rig, rig_file, entry.params or DEFAULT_PARAMS)
+    return PreparedBag(entry, Path(bag), rig, rig_file, entry.params or default_params())
 
 
 def replay_and_score(p: PreparedBag, out: Path):
@@ -155,7 +156,7 @@ def check_bag(p: PreparedBag, out: Path, baseline, label: str) -> BagResult:
 
 
 def run(args) -> int:
-    from multicam_ego_motion import dds_transport, ros_domain
+    from multicam_ego_motion.ros_plumbing import dds_transport, ros_domain
 
     suite = load_suite(args.suite)
     entries = suite.bags

@@ -473,7 +473,7 @@ class Coordinator:
         frame. With `rate_mode_period_s`, rebalancing runs on a timer (no lockstep hook)."""
         from diagnostic_msgs.msg import DiagnosticArray
 
-        from multicam_ego_motion.qos import RELIABLE
+        from multicam_ego_motion.ros_plumbing.qos import RELIABLE
         self._ros_node = node
         topic = under(self.namespace, '/diagnostics')
         self._diag_pub = node.create_publisher(DiagnosticArray, topic, RELIABLE)
@@ -497,7 +497,7 @@ class Coordinator:
             threading.Thread(target=run, daemon=True).start()
 
     def _on_diagnostics(self, msg):
-        from multicam_ego_motion import diagnostics
+        from multicam_ego_motion.ros_plumbing import diagnostics
         closed = False
         for st in msg.status:
             closed |= self.costs.observe(st.name, diagnostics.values_of(st))
@@ -511,7 +511,7 @@ class Coordinator:
         self._gains.append((version, ok))
 
     def _publish_diag(self, stamp):
-        from multicam_ego_motion import diagnostics
+        from multicam_ego_motion.ros_plumbing import diagnostics
         version = self._placement_version
         a = self.current_allocation()
         self._note_gain(a, version)

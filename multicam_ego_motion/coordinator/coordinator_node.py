@@ -40,8 +40,8 @@ def parse_args(argv=None):
 
 
 def main(argv=None):
-    from multicam_ego_motion import package_share
-    from multicam_ego_motion.rig import load_rig
+    from multicam_ego_motion.ros_plumbing import package_share
+    from multicam_ego_motion.geometry.rig import load_rig
 
     ros_argv = sys.argv if argv is None else ['coordinator', *argv]
     args = parse_args(argv)

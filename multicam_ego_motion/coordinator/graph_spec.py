@@ -12,7 +12,7 @@ absolutely, which a node namespace leaves alone: `remappings()` gives the rules 
 from dataclasses import asdict, dataclass, field
 from typing import Dict, Iterable, List, Tuple
 
-from multicam_ego_motion.rig import Rig
+from multicam_ego_motion.geometry.rig import Rig
 
 
 @dataclass

@@ -33,7 +33,7 @@ from rclpy.parameter import Parameter
 from multicam_ego_motion.coordinator import control
 from multicam_ego_motion.coordinator.idle_gc import IdleCollector
 from multicam_ego_motion.errors import UserError
-from multicam_ego_motion.lean_node import strip_event_handlers
+from multicam_ego_motion.ros_plumbing.lean_node import strip_event_handlers
 
 PR_SET_PDEATHSIG = 1
 LINK_TIMEOUT_S = 2.0       # longest wait for a moved node's topics to be matched
@@ -126,7 +126,7 @@ class Worker:
         # of CPU here, and each is a wake-up of the replay process).
         from diagnostic_msgs.msg import DiagnosticArray
 
-        from multicam_ego_motion.qos import RELIABLE
+        from multicam_ego_motion.ros_plumbing.qos import RELIABLE
         self.diag_pub = self.node.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         self.diag_batches = {}          # (sec, nanosec) -> (stamp, [DiagnosticStatus], opened at)
         strip_event_handlers(self.node)
@@ -218,7 +218,7 @@ class Worker:
 
     def flush_diagnostics(self, key=None):
         """Publish the batch of `key` (all batches when None: the poll timer's stragglers)."""
-        from multicam_ego_motion import diagnostics
+        from multicam_ego_motion.ros_plumbing import diagnostics
         for k in ([key] if key is not None else sorted(self.diag_batches)):
             stamp, statuses, _ = self.diag_batches.pop(k)
             self.diag_pub.publish(diagnostics.array(stamp, statuses))

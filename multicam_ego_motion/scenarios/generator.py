@@ -12,9 +12,9 @@ from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from multicam_ego_motion.bag.rig_bag_writer import STAMP_EPOCH_NS, RigBagWriter
-from multicam_ego_motion.camera_intrinsics import CameraIntrinsics
+from multicam_ego_motion.geometry.camera_intrinsics import CameraIntrinsics
 from multicam_ego_motion.errors import UserError
-from multicam_ego_motion.rig import MAX_CAMERAS, CameraMount, Rig, optical_rotation, paper_rig
+from multicam_ego_motion.geometry.rig import MAX_CAMERAS, CameraMount, Rig, optical_rotation, paper_rig
 from multicam_ego_motion.scenarios.photometry import LightingEffects
 from multicam_ego_motion.scenarios.renderer import CameraRenderer
 from multicam_ego_motion.scenarios.scene import CAMERA_HEIGHT, scene_for

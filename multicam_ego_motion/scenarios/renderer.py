@@ -13,7 +13,7 @@ the plumb_bob model (cv2.undistortPoints gives each distorted pixel's ray).
 import cv2
 import numpy as np
 
-from multicam_ego_motion.camera_intrinsics import CameraIntrinsics
+from multicam_ego_motion.geometry.camera_intrinsics import CameraIntrinsics
 from multicam_ego_motion.errors import UserError
 
 _FAR = 1e4

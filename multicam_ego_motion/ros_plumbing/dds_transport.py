@@ -15,7 +15,7 @@ FAST_DDS_RMWS = ('rmw_fastrtps_cpp', 'rmw_fastrtps_dynamic_cpp')
 
 def profile() -> Path:
     """The package's config/fastdds.xml (package_share.py: checkout or install space)."""
-    from multicam_ego_motion import package_share
+    from multicam_ego_motion.ros_plumbing import package_share
     return package_share.config_file('fastdds.xml')
 
 

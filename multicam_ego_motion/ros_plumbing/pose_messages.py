@@ -6,7 +6,7 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
 
 from camera_pose_nodes.pose_estimate import UNINFORMATIVE_VARIANCE, PoseEstimate
-from multicam_ego_motion.se3 import R_to_quat_xyzw, make_T, quat_xyzw_to_R
+from multicam_ego_motion.geometry.se3 import R_to_quat_xyzw, make_T, quat_xyzw_to_R
 
 
 def stamp_to_ns(stamp) -> int:

@@ -19,7 +19,7 @@ from pathlib import Path
 from multicam_ego_motion.errors import UserError
 
 PACKAGE = 'multicam_ego_motion'
-SOURCE_ROOT = Path(__file__).resolve().parent.parent
+SOURCE_ROOT = Path(__file__).resolve().parents[2]     # <checkout>/multicam_ego_motion/ros_plumbing/
 
 
 def _checkout():
