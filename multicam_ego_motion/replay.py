@@ -6,6 +6,7 @@ with --debug-images also each camera's /<cam>/tracks), DIR/odometry.tum, and whe
 ground truth DIR/report.md with plots.
 """
 import os
+import signal
 import threading
 import time
 from dataclasses import dataclass, field
@@ -189,11 +190,25 @@ def make_link_waiter(rig, player, timeout_s=2.0):
     return wait
 
 
+def _killing(coordinator, at_frame):
+    """The coordinator's between-frames hook, which also kills its last worker once."""
+    done = []
+
+    def between(frame_index):
+        if not done and frame_index >= at_frame:
+            done.append(coordinator.workers[-1].proc.pid)
+            os.kill(done[0], signal.SIGKILL)
+        coordinator.between_frames(frame_index)
+    return between
+
+
 def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rate=1.0,
               use_wheel=True, ack_timeout=120.0, start_offset=0.0, duration=None,
               migrate_every=0, rebalance=True, logger=print, record_topics=None,
-              lockstep_depth=LOCKSTEP_DEPTH, debug_images=False) -> GraphRun:
-    """Coordinator + in-process player and recorder: one run of the graph over a bag."""
+              lockstep_depth=LOCKSTEP_DEPTH, debug_images=False, kill_worker_at=None) -> GraphRun:
+    """Coordinator + in-process player and recorder: one run of the graph over a bag.
+    kill_worker_at (lockstep; the bench's crash row): SIGKILL the last worker once this many
+    frames were acknowledged, as a crash would."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
@@ -264,7 +279,8 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
             lockstep=lockstep, lockstep_depth=lockstep_depth, rate=rate, ack_topic='/odom',
             ack_timeout_s=ack_timeout, discovery_s=0.5, progress=None,
             start_offset_s=start_offset, duration_s=duration,
-            between_frames=coordinator.between_frames if lockstep else None,
+            between_frames=(coordinator.between_frames if kill_worker_at is None
+                            else _killing(coordinator, kill_worker_at)) if lockstep else None,
             health_check=coordinator.check_alive))
         interrupt.note(progress=player.position)
         coordinator.link_waiter = make_link_waiter(rig, player)

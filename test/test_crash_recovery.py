@@ -1,5 +1,5 @@
 """A worker killed with SIGKILL mid-run is restarted and its nodes restored (from the
-coordinator's last state snapshots) within 2 s; the lockstep run completes with every frame
+coordinator's last state snapshots; how fast is `make bench`'s crash row); the lockstep run completes with every frame
 and its accuracy stays within 10 % of an uninterrupted run. No worker process outlives a
 run, killed or not."""
 import os

@@ -10,7 +10,8 @@ accuracy live vs offline at 15 and 30 Hz (live_offline.py), the track CPU per tr
 point, the targets, one row each with met or missed (targets.py), and the paper's model
 (parallel_time_model) fed with the median stage times measured in the M = 2 lockstep run,
 next to the paper's Fig. 6(d). Measured, not asserted. The VGA bags are generated on first
-use into --camera-rate-bags and reused; --skip-camera-rate and --skip-live-vs-offline leave
+use into --camera-rate-bags and reused; a worker killed mid-run (worker_crash.py: time to
+restore). --skip-camera-rate, --skip-live-vs-offline and --skip-worker-crash leave
 out the long parts.
 Writes DIR/bench.md and DIR/model.png.
 """
@@ -39,6 +40,8 @@ def configure_parser(p):
                    help='leave out the camera-rate row (4 x 640x480 at 30 Hz, rate mode)')
     p.add_argument('--skip-live-vs-offline', action='store_true',
                    help='leave out accuracy live vs offline (VGA at 15 and 30 Hz, lockstep and rate mode)')
+    p.add_argument('--skip-worker-crash', action='store_true',
+                   help='leave out the crash row (a worker killed mid-run: time to restore)')
 
 
 def stage_medians(statuses, cameras):
@@ -102,6 +105,12 @@ def run(args) -> int:
         live_off = live_vs_offline(bags_folder, out, params, live_runs=reuse)
         lines += ['', 'Accuracy live (rate mode) vs offline (lockstep), against the bag\'s ground truth; '
                   'apart = |live - offline| / offline:', ''] + live_off.lines
+
+    # a worker killed mid-run: time to restore, frames published again
+    if not args.skip_worker_crash:
+        from multicam_ego_motion.bench.worker_crash import worker_crash
+        crash = worker_crash(args.bag, out, rig, rig_file, params, n_frames, args.duration)
+        lines += [''] + crash.lines()
 
     # 6. track CPU per tracked point (lockstep, M = 2)
     statuses = read_statuses(out / 'lockstep_m2' / 'output')
