@@ -66,7 +66,7 @@ KIND_BY_PATH = (
     (re.compile(r'[\\/](numpy|scipy|filterpy)[\\/]'), MATH),
     (re.compile(r'[\\/](rclpy|rosidl\w*|rpyutils|mcap\w*|rosbags|zstandard|lz4)[\\/]'), ROSMSG),
     (re.compile(r'[\\/]\w+[\\/]msg[\\/]_\w+\.py$'), ROSMSG),           # generated message classes
-    (re.compile(r'[\\/]multicam_ego_motion[\\/](bag[\\/]rosbag2_reader|pose_messages)\.py$'), ROSMSG),
+    (re.compile(r'[\\/]multicam_ego_motion[\\/](bag[\\/]rosbag2_reader|ros_plumbing[\\/]pose_messages)\.py$'), ROSMSG),
     (re.compile(r'[\\/](camera_pose_nodes|arbiter_node|multicam_ego_motion)[\\/]'), PYTHON),
 )
 # Builtins (C functions) by their label.
