@@ -212,9 +212,10 @@ def test_rate_mode_timing_and_remap(bag, rclpy_context):
             assert recipient.received['/chatter'] == []
     finally:
         recipient.close()
-    # chatter spans 1.0 s of bag time: 0.5 s at rate 2 (loose bound: not a benchmark)
+    # chatter spans 1.0 s of bag time, 0.5 s at rate 2: the player paces (never faster than
+    # that); how much slower a loaded host makes it is not a test bound
     wall = float(re.search(r'in ([0-9.]+) s', proc.stderr).group(1))
-    assert 0.45 <= wall <= 1.5, proc.stderr
+    assert wall >= 0.45, proc.stderr
 
 
 def test_parse_remaps_rejects_malformed_rules():
