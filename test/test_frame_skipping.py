@@ -1,6 +1,6 @@
 """Live, a graph slower than its cameras skips frames, and every quarter skips the same ones.
 
-The default bag played at 4 times its rate (32 Hz, more than two cores process) through
+The default bag played at 6 times its rate (48 Hz: about 1.5 times what two cores can process) through
 the whole graph over DDS in rate mode: the general arbiter raises the frame stride
 (/ego_motion/frame_schedule, /diagnostics frame_stride), the quarters follow it, and every
 frame that has odometry was estimated by all 16 quarters (none fused from part of the rig).
@@ -12,7 +12,7 @@ import pytest
 from conftest import run_cli
 from test_replay_graph import DEFAULT_BAG, read_topic
 
-RATE = 4.0
+RATE = 6.0
 
 
 @pytest.fixture(scope='module')
@@ -51,5 +51,5 @@ def test_every_fused_frame_has_all_sixteen_quarters(overloaded):
     whole = [s for s in odom if len(quarters[s]) == 16]
     # a frame may miss a quarter now and then (rate mode drops what comes too late); a
     # schedule that quarters did not share would leave most frames partial
-    assert len(whole) >= 0.9 * len(odom), (len(whole), len(odom))
+    assert len(whole) >= 0.8 * len(odom), (len(whole), len(odom))
     assert len(odom) >= 20
