@@ -94,7 +94,9 @@ class FrameGovernor:
         self.stride = 1
         self.period_ns: Optional[int] = None
         self.last_stamp_ns: Optional[int] = None
-        self.lags: List[float] = []          # since the last change, oldest first
+        # since the last change, oldest first; the last 2 * hold_frames are all the rules read
+        # (the general arbiter snapshots this state every frame: it must not grow with the run)
+        self.lags: List[float] = []
         self.clock_mismatch = False
 
     @property
@@ -116,7 +118,7 @@ class FrameGovernor:
         if abs(lag) > self.clock_sanity_s:
             self.clock_mismatch = True
             return None
-        self.lags.append(lag)
+        self.lags = self.lags[-(2 * self.hold_frames - 1):] + [lag]
         if self.period_ns is None or len(self.lags) < self.hold_frames:
             return None
         recent = self.lags[-self.hold_frames:]

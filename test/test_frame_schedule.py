@@ -59,6 +59,7 @@ def test_the_governor_keeps_a_slow_graph_within_its_lag_and_returns_to_every_fra
     fast = FrameGovernor(max_lag_s=0.1)
     strides, _ = simulate(fast, cost_frames=0.5)
     assert set(strides) == {1}                             # keeps up: every frame
+    assert len(fast.lags) <= 2 * fast.hold_frames        # snapshotted every frame: bounded
     # catching up after a slow spell lowers the stride again
     gov.max_lag_s = 0.1
     strides, _ = simulate(gov, cost_frames=0.5, n=200)
