@@ -168,24 +168,25 @@ class KLTTracker:
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, self.cfg.iterations, self.cfg.epsilon_px)
         prev, lv = self.prev_crop, self.cfg.pyramid_levels
 
-        def guess(fn, pts):
-            # a prediction only where it is finite; else zero flow as without one
+        fwd, bwd = predict if predict is not None else (None, None)
+
+        def search(img0, img1, pts, fn):
+            """LK of `pts` from img0 into img1, starting where `fn` predicts them (motions it
+            predicts under MIN_PREDICTED_PX, and non-finite ones, start at zero flow)."""
+            if fn is None:
+                return cv2.calcOpticalFlowPyrLK(img0, img1, pts, None, winSize=(w, w),
+                                                maxLevel=lv, criteria=crit)
             p = pts.reshape(-1, 2)
             g = fn(p + off) - off
-            # small predicted motions start at zero flow, as without a prediction
-            bad = ~np.all(np.isfinite(g), axis=1) | (np.abs(g - p).max(axis=1) < MIN_PREDICTED_PX)
-            g[bad] = p[bad]
-            return g.reshape(-1, 1, 2).astype(np.float32)
+            zero = ~np.all(np.isfinite(g), axis=1) | (np.abs(g - p).max(axis=1) < MIN_PREDICTED_PX)
+            g[zero] = p[zero]
+            return cv2.calcOpticalFlowPyrLK(img0, img1, pts, g.reshape(-1, 1, 2).astype(np.float32),
+                                            winSize=(w, w), maxLevel=lv, criteria=crit,
+                                            flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
 
         def lk(chunk):
             a = p0[chunk]
-            if predict is None:
-                b, st1, _ = cv2.calcOpticalFlowPyrLK(prev, crop, a, None, winSize=(w, w),
-                                                     maxLevel=lv, criteria=crit)
-            else:
-                b, st1, _ = cv2.calcOpticalFlowPyrLK(prev, crop, a, guess(predict[0], a),
-                                                     winSize=(w, w), maxLevel=lv, criteria=crit,
-                                                     flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+            b, st1, _ = search(prev, crop, a, fwd)
             new = b.reshape(-1, 2) + off
             # Only tracks that can still be kept are checked backwards (a quarter of them
             # were lost or left the quarter; each point is tracked on its own, so leaving
@@ -195,14 +196,7 @@ class KLTTracker:
             if ok.any():
                 # Backwards from the new position's own prediction, never from the start
                 # point: a search that starts at the answer would pass a wrong track.
-                if predict is None:
-                    back, st2, _ = cv2.calcOpticalFlowPyrLK(crop, prev, b[ok], None,
-                                                            winSize=(w, w), maxLevel=lv,
-                                                            criteria=crit)
-                else:
-                    back, st2, _ = cv2.calcOpticalFlowPyrLK(
-                        crop, prev, b[ok], guess(predict[1], b[ok]), winSize=(w, w),
-                        maxLevel=lv, criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+                back, st2, _ = search(crop, prev, b[ok], bwd)
                 fb = np.linalg.norm((back - a[ok]).reshape(-1, 2), axis=1)
                 ok[ok] = (st2.ravel() == 1) & (fb < self.cfg.fb_threshold_px)
             return new, ok

@@ -191,8 +191,8 @@ class LandmarkMap:
         ids = np.asarray(ids, dtype=np.int64)
         if len(ids) == 0:
             return np.zeros(0, bool)
+        w = np.ones(np.shape(xy)[:2]) if view_weights is None else np.asarray(view_weights, float)
         if self._native:
-            w = np.ones(np.shape(xy)[:2]) if view_weights is None else view_weights
             X, C, par, ok = kernel.native.triangulate_checked(
                 R_oc, c_o, xy, w, self.sigma_n, self.min_depth, self.max_depth,
                 self.parallax_deg, self.focal_px, self.max_reproj_px)
@@ -212,7 +212,6 @@ class LandmarkMap:
         ok &= np.all(err < self.max_reproj_px, axis=1)
         if not ok.any():
             return ok
-        w = np.ones(xy.shape[:2]) if view_weights is None else np.asarray(view_weights, float)
         C = triangulation_covariance(Xc[ok], R_oc[ok], w[ok], self.sigma_n)
         self._upsert(ids[ok], X[ok], C, par[ok], on_floor=False)
         return ok

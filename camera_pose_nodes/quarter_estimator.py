@@ -236,7 +236,8 @@ class QuarterEstimator:
         t1 = time.thread_time()
         ms['acquire'] += (t1 - t0) * 1e3
 
-        self.tracker.track(stamp_ns, crop, flow, self._flow_predictor(stamp_ns))
+        # (the rotation steers the search only when the flow is computed now)
+        self.tracker.track(stamp_ns, crop, flow, None if flow is not None else self._flow_predictor(stamp_ns))
         t2 = time.thread_time()
         ms['track'] += (t2 - t1) * 1e3
 
@@ -348,6 +349,14 @@ class QuarterEstimator:
             self._fused_cache = (st, T, R_oc, c_o)
         return self._fused_cache
 
+    def _earlier_fused_views(self, rows=None) -> np.ndarray:
+        """(len(rows), max_history) mask of the history slots of tracks `rows` (all when None)
+        before their newest view that have a fused pose: where an epipolar line can start."""
+        tr = self.tracker
+        ht, n = (tr.hist_t, tr.hist_n) if rows is None else (tr.hist_t[rows], tr.hist_n[rows])
+        earlier = np.arange(tr.cfg.max_history)[None, :] < (n - 1)[:, None]
+        return earlier & _members(ht, self._fused_arrays()[0])
+
     def _epipolar_update(self, stamp_ns, without_landmark) -> int:
         """Epipolar measurements of the tracks without a landmark (see PoseEKF.update_epipolar),
         each against its oldest view that has a fused pose. Returns the inlier count."""
@@ -358,11 +367,9 @@ class QuarterEstimator:
         if not len(rows):
             return 0
         fs, fT, _, _ = self._fused_arrays()
-        H = tr.cfg.max_history
         # the oldest view with a fused pose (not the current one): the longest baseline, the
         # best-defined line
-        ht = tr.hist_t[rows]
-        infused = (np.arange(H)[None, :] < (tr.hist_n[rows] - 1)[:, None]) & _members(ht, fs)
+        infused = self._earlier_fused_views(rows)
         found = infused.any(axis=1)
         rows, col = rows[found], np.argmax(infused[found], axis=1)
         slot = np.searchsorted(fs, tr.hist_t[rows, col])
@@ -409,9 +416,7 @@ class QuarterEstimator:
         trails[np.arange(K)[None, :] < (K - k)[:, None]] = np.nan
         status = np.full(N, TRACK_NEW, np.uint8)
         if self.params.epipolar and self.fused_poses:
-            fs = np.array(sorted(self.fused_poses), np.int64)
-            earlier = (np.arange(H)[None, :] < (n - 1)[:, None]) & _members(tr.hist_t, fs)
-            status[earlier.any(axis=1)] = TRACK_EPIPOLAR
+            status[self._earlier_fused_views().any(axis=1)] = TRACK_EPIPOLAR
         has, r = self.landmarks.rows(tr.ids)
         status[has] = np.where(self.landmarks.on_floor[r], TRACK_FLOOR, TRACK_LANDMARK)
         return trails, status
