@@ -16,6 +16,7 @@ from sensor_msgs.msg import Image
 
 from arbiter_node.quarter_fusion import fuse_quarters
 from arbiter_node.stamp_sync import StampSynchronizer
+from camera_pose_nodes.image_conversion import bgr8_message
 from multicam_ego_motion.ros_plumbing import diagnostics
 from multicam_ego_motion.ros_plumbing.node_main import spin_node
 from multicam_ego_motion.ros_plumbing.node_parameters import declare_from_table
@@ -137,13 +138,8 @@ class CameraArbiterNode(Node):
             img = compose_quarters(tiles, self.tile_sizes)
             if img is None:
                 continue
-            msg = Image()
-            msg.header.stamp = ns_to_stamp(g.stamp_ns)
-            msg.header.frame_id = next(iter(g.items.values()))[1]
-            msg.height, msg.width = img.shape[:2]
-            msg.encoding, msg.step = 'bgr8', 3 * img.shape[1]
-            msg.data = img.tobytes()
-            self.pub_tracks.publish(msg)
+            self.pub_tracks.publish(bgr8_message(Image(), img, ns_to_stamp(g.stamp_ns),
+                                                 next(iter(g.items.values()))[1]))
 
 
 def main(args=None):

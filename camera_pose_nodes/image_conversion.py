@@ -50,6 +50,17 @@ def to_gray(encoding: str, height: int, width: int, step: int, data,
     return cv2.cvtColor(np.ascontiguousarray(rows.reshape(height, width, channels)), code)
 
 
+def bgr8_message(msg, img: np.ndarray, stamp, frame_id: str):
+    """Fill an empty sensor_msgs/Image `msg` (duck-typed) with the bgr8 image `img` (H x W x 3
+    uint8), stamped; returns it (the debug images of the quarters and camera arbiters)."""
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = img.shape[:2]
+    msg.encoding, msg.step = 'bgr8', 3 * img.shape[1]
+    msg.data = np.ascontiguousarray(img, np.uint8).tobytes()
+    return msg
+
+
 def image_msg_to_gray(msg, expected_size=None) -> np.ndarray:
     """Gray image from a sensor_msgs/Image (duck-typed: no ROS import here)."""
     return to_gray(msg.encoding, msg.height, msg.width, msg.step, msg.data, expected_size)

@@ -22,7 +22,7 @@ from std_msgs.msg import Int64MultiArray
 from camera_pose_nodes import kernel
 from camera_pose_nodes.camera_model import intrinsics_from_msg
 from camera_pose_nodes.frame_schedule import FrameSchedule, ScheduleBook
-from camera_pose_nodes.image_conversion import image_msg_to_gray
+from camera_pose_nodes.image_conversion import bgr8_message, image_msg_to_gray
 from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, QuarterParams
 from multicam_ego_motion.ros_plumbing import diagnostics
 from multicam_ego_motion.errors import UserError
@@ -292,12 +292,7 @@ class QuarterNode(Node):
             self.get_logger().error(f'{self.source}: tracks image not drawn: {type(ex).__name__}: {ex}',
                                     throttle_duration_sec=5.0)
             return
-        msg = Image()
-        msg.header.stamp = stamp
-        msg.header.frame_id = self.camera.frame_id
-        msg.height, msg.width = tile.shape[:2]
-        msg.encoding, msg.step = 'bgr8', 3 * tile.shape[1]
-        msg.data = tile.tobytes()
+        msg = bgr8_message(Image(), tile, stamp, self.camera.frame_id)
         if self.pub_tracks.get_subscription_count() > 0:
             self.pub_tracks.publish(msg)
         if self.tracks_sink is not None:
