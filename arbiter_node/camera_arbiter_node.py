@@ -18,6 +18,7 @@ from arbiter_node.quarter_fusion import fuse_quarters
 from arbiter_node.stamp_sync import StampSynchronizer
 from camera_pose_nodes.image_conversion import bgr8_message
 from multicam_ego_motion.ros_plumbing import diagnostics
+from multicam_ego_motion.ros_plumbing.lean_node import subscribe_remote
 from multicam_ego_motion.ros_plumbing.node_main import spin_node
 from multicam_ego_motion.ros_plumbing.node_parameters import declare_from_table
 from multicam_ego_motion.ros_plumbing.pose_messages import estimate_to_msg, msg_to_estimate, ns_to_stamp, stamp_to_ns
@@ -66,22 +67,13 @@ class CameraArbiterNode(Node):
 
     def take_local(self, local):
         """Quarters (`q1`...) whose estimates a host hands to on_quarter itself (worker.py:
-        co-hosted quarters): no subscription for them, every other one subscribed. Saves
-        each such estimate a take, an executor callback and a reader to write to."""
-        for s in self.sources:
-            sub = self.quarter_subs.get(s)
-            if s in local and sub is not None:
-                self.destroy_subscription(self.quarter_subs.pop(s))
-            elif s not in local and sub is None:
-                self.quarter_subs[s] = self.create_subscription(
-                    PoseWithCovarianceStamped, f'{s}/pose', lambda m, s=s: self.on_quarter(s, m), RELIABLE)
-            # debug_images: their tiles likewise
-            sub = self.tracks_subs.get(s)
-            if s in local and sub is not None:
-                self.destroy_subscription(self.tracks_subs.pop(s))
-            elif self.debug_images and s not in local and sub is None:
-                self.tracks_subs[s] = self.create_subscription(
-                    Image, f'{s}/tracks', lambda m, s=s: self.on_tracks(s, m), RELIABLE_IMAGES)
+        co-hosted quarters): no subscription for them, every other one subscribed."""
+        subscribe_remote(self, self.quarter_subs, self.sources, local, lambda s: self.create_subscription(
+            PoseWithCovarianceStamped, f'{s}/pose', lambda m: self.on_quarter(s, m), RELIABLE))
+        # debug_images: their tiles likewise
+        subscribe_remote(self, self.tracks_subs, self.sources if self.debug_images else (), local,
+                         lambda s: self.create_subscription(
+                             Image, f'{s}/tracks', lambda m: self.on_tracks(s, m), RELIABLE_IMAGES))
 
     def on_quarter(self, source, msg):
         est = msg_to_estimate(msg, source=f'{self.camera}/{source}')

@@ -26,6 +26,7 @@ from arbiter_node.wheel_prior import WheelBuffer, twist_from_odometry
 from camera_pose_nodes.pose_estimate import PoseEstimate
 from multicam_ego_motion.ros_plumbing import diagnostics
 from multicam_ego_motion.errors import UserError
+from multicam_ego_motion.ros_plumbing.lean_node import subscribe_remote
 from multicam_ego_motion.ros_plumbing.node_main import spin_node
 from multicam_ego_motion.ros_plumbing.node_parameters import declare_from_table
 from multicam_ego_motion.ros_plumbing.pose_messages import (covariance_field, estimate_to_msg, fill_pose,
@@ -94,14 +95,8 @@ class GeneralArbiterNode(Node):
     def take_local(self, local):
         """Cameras whose estimates a host hands to on_camera itself (worker.py: co-hosted
         camera arbiters): no subscription for them, every other one subscribed."""
-        for name in self.rig.names:
-            sub = self.camera_subs.get(name)
-            if name in local and sub is not None:
-                self.destroy_subscription(self.camera_subs.pop(name))
-            elif name not in local and sub is None:
-                self.camera_subs[name] = self.create_subscription(
-                    PoseWithCovarianceStamped, f'/{name}/pose',
-                    lambda m, n=name: self.on_camera(n, m), RELIABLE)
+        subscribe_remote(self, self.camera_subs, self.rig.names, local, lambda n: self.create_subscription(
+            PoseWithCovarianceStamped, f'/{n}/pose', lambda m: self.on_camera(n, m), RELIABLE))
 
     def on_wheel(self, msg: Odometry):
         self.wheel.add(stamp_to_ns(msg.header.stamp), *twist_from_odometry(msg))

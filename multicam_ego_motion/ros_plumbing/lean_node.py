@@ -36,3 +36,15 @@ class LeanNode(Node):
         sub = super().create_subscription(*args, **kwargs)
         strip_entity(self, sub)
         return sub
+
+
+def subscribe_remote(node, subs: dict, names, local, subscribe):
+    """Keep `subs` (name -> subscription of `node`) to exactly the `names` not in `local`:
+    their estimates a host (worker.py) hands to the node by a call, which saves each a take,
+    an executor callback and a reader to write to. subscribe(name) makes one."""
+    for name in names:
+        sub = subs.get(name)
+        if name in local and sub is not None:
+            node.destroy_subscription(subs.pop(name))
+        elif name not in local and sub is None:
+            subs[name] = subscribe(name)
