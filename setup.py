@@ -72,6 +72,7 @@ setup(
             'camera_arbiter = arbiter_node.camera_arbiter_node:main',
             'general_arbiter = arbiter_node.general_arbiter_node:main',
             'coordinator = multicam_ego_motion.coordinator.coordinator_node:main',
+            'worker = multicam_ego_motion.coordinator.worker:main_remote',
             # The user's command line: generate, import-kitti, play, record, evaluate, replay, bench.
             'ego-motion = multicam_ego_motion.cli:main',
         ],

@@ -25,6 +25,7 @@ SUBCOMMANDS = {
     'matrix': ('multicam_ego_motion.bench.accuracy_matrix', 'accuracy matrix: seeds x scenarios through the sequential pipeline'),
     'profile': ('multicam_ego_motion.bench.profile_table', 'where the CPU goes: stage x kind of work, per frame'),
     'check': ('multicam_ego_motion.check.command', 'regression suite: replay its bags, judge the figures, JUnit XML'),
+    'worker': ('multicam_ego_motion.coordinator.remote_worker', "join a coordinator's worker pool from this host (TCP)"),
     'reindex': ('multicam_ego_motion.bag.reindex', 'rebuild an unfinished bag (writer killed) from its complete chunks'),
 }
 

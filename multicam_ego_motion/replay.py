@@ -38,9 +38,31 @@ def configure_parser(p):
                         'the odometry is the same for any N)')
     p.add_argument('--migrate-every', type=int, default=0, metavar='K',
                    help='debug (lockstep): move one quarter node to the next worker every K frames')
+    add_remote_arguments(p)
     p.add_argument('--debug-images', action='store_true',
                    help='draw the tracker (the nodes\' debug_images parameter) and record each '
                         'camera\'s /<cam>/tracks: features, flow, landmark/epipolar status')
+
+
+def add_remote_arguments(p):
+    """Remote workers (coordinator.py): the TCP address to listen on and how many of the M
+    workers join from other hosts; the key from a file or $EGO_MOTION_CONTROL_KEY."""
+    p.add_argument('--listen', metavar='HOST:PORT',
+                   help='accept workers from other hosts on this TCP address (`worker --coordinator HOST:PORT`)')
+    p.add_argument('--remote-workers', type=int, default=0, metavar='R',
+                   help='of the --workers, R join over --listen (the coordinator waits for them)')
+    p.add_argument('--key-file', help='the control channel\'s shared key (default: $EGO_MOTION_CONTROL_KEY); '
+                                      'needed with --listen')
+
+
+def remote_options(args) -> dict:
+    from multicam_ego_motion.coordinator import control
+    if not getattr(args, 'listen', None):
+        if getattr(args, 'remote_workers', 0):
+            raise UserError('--remote-workers needs --listen HOST:PORT')
+        return {}
+    return {'listen': args.listen, 'remote_workers': args.remote_workers,
+            'key': control.load_key(args.key_file)}
 
 
 def resolve_rig(bag_reader, rig_arg):
@@ -205,7 +227,8 @@ def _killing(coordinator, at_frame):
 def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rate=1.0,
               use_wheel=True, ack_timeout=120.0, start_offset=0.0, duration=None,
               migrate_every=0, rebalance=True, logger=print, record_topics=None,
-              lockstep_depth=LOCKSTEP_DEPTH, debug_images=False, kill_worker_at=None) -> GraphRun:
+              lockstep_depth=LOCKSTEP_DEPTH, debug_images=False, kill_worker_at=None,
+              remote=None) -> GraphRun:
     """Coordinator + in-process player and recorder: one run of the graph over a bag.
     kill_worker_at (lockstep; the bench's crash row): SIGKILL the last worker once this many
     frames were acknowledged, as a crash would."""
@@ -226,7 +249,8 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
     reader = Rosbag2Reader(bag)
     coordinator = Coordinator(rig, Path(rig_file).resolve(), Path(params).resolve(), workers=workers,
                               overrides=graph_overrides(lockstep, use_wheel, debug_images), log_dir=out / 'logs',
-                              rebalance=rebalance, migrate_every=migrate_every, logger=logger)
+                              rebalance=rebalance, migrate_every=migrate_every, logger=logger,
+                              **(remote or {}))
     # No rclpy signal handlers: on Ctrl-C they invalidate the context under the spinning
     # thread. SIGINT, SIGTERM and SIGHUP raise interrupt.Interrupted here (the command line
     # installs interrupt.handling()), which reaches the finally below: it closes in order.
@@ -344,6 +368,7 @@ def run(args) -> int:
     if not params.exists():
         raise UserError(f'params file not found: {params}')
     lockstep = args.rate is None
+    remote = remote_options(args)
     if args.migrate_every and not lockstep:
         raise UserError('--migrate-every needs lockstep replay')
     print(f'replay: {args.bag} ({", ".join(rig.names)}; '
@@ -358,7 +383,7 @@ def run(args) -> int:
                   start_offset=args.start_offset, duration=args.duration,
                   migrate_every=args.migrate_every, rebalance=not args.no_rebalance,
                   logger=lambda t: print(t, flush=True), lockstep_depth=args.lockstep_depth,
-                  debug_images=args.debug_images)
+                  debug_images=args.debug_images, remote=remote)
     st = g.coordinator.stats
     print(f'coordinator: {st.migrations} migrations ({st.rebalances} rebalances), '
           f'{st.restarts} worker restarts'

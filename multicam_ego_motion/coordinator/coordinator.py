@@ -2,8 +2,16 @@
 
 * Placement: allocation.allocate() (paper section 3) on the measured quarter costs; before
   anything is measured every quarter costs the same.
-* Control channel (control.py): one Unix-socket connection per worker; attach / detach nodes,
-  state snapshots after every frame of every stateful node.
+* Control channel (control.py): one authenticated connection per worker (a Unix socket for
+  the workers it starts; TCP for remote workers when `listen` is given); attach / detach
+  nodes, state snapshots after every frame of every stateful node.
+* Remote workers (`listen`, `remote_workers`): R of the M worker slots are filled by
+  `worker --coordinator HOST:PORT` processes on other hosts, which join over TCP with the
+  shared key; the coordinator sends them the rig, the params and the namespace's remappings,
+  then places nodes on them like on its own workers (their costs come over /diagnostics).
+  A remote worker whose connection drops, or whose heartbeats stop (its host died), is
+  restored like a crashed local worker: its nodes go to the hot spare (or a new local
+  worker) with their last snapshots.
 * Rebalancing: costs from the quarters' /diagnostics (cost_monitor.py), allocation.
   should_rebalance() with threshold and hysteresis; a move = detach on the source worker
   (which waits until the node is between frames and returns its state), attach on the
@@ -28,6 +36,7 @@ spawning *thread* ends.
 import itertools
 from collections import deque
 import os
+import socket
 import subprocess
 import sys
 import tempfile
@@ -48,6 +57,7 @@ from multicam_ego_motion.errors import UserError
 
 START_TIMEOUT_S = 60.0
 REPLY_TIMEOUT_S = 30.0
+REMOTE_JOIN_TIMEOUT_S = 120.0
 WORKER_MODULE = 'multicam_ego_motion.coordinator.worker'
 
 
@@ -61,6 +71,9 @@ class WorkerHandle:
     ready: threading.Event = field(default_factory=threading.Event)
     alive: bool = False
     send_lock: threading.Lock = field(default_factory=threading.Lock)
+    remote: bool = False          # a slot filled by a worker that joins over TCP
+    host: str = ''                # where a remote worker runs (its connection's peer)
+    joining: bool = False         # a remote worker was given this slot and is starting
 
 
 @dataclass
@@ -76,8 +89,10 @@ class Coordinator:
     def __init__(self, rig, rig_file, params_file=None, workers: int = None, overrides=None,
                  log_dir=None, env=None, rebalance: bool = True, threshold: float = 0.10,
                  hysteresis_frames: int = 10, migrate_every: int = 0, spare: bool = True,
-                 logger=print, namespace: str = ''):
+                 logger=print, namespace: str = '', listen: str = None, remote_workers: int = 0,
+                 key: bytes = None, join_timeout_s: float = REMOTE_JOIN_TIMEOUT_S):
         self.rig = rig
+        self.rig_file = str(rig_file)
         # The graph's namespace (graph_spec.py): its nodes, and its topics through remappings
         # that every worker process gets as global ROS arguments.
         self.namespace = normalize_namespace(namespace)
@@ -106,6 +121,21 @@ class Coordinator:
         self.on_restored: List[Callable[[int], None]] = []
         self.link_waiter: Optional[Callable[[dict, str], None]] = None   # see migrate()
         self.workers = [WorkerHandle(i) for i in range(self.n_workers)]
+        # Remote slots are the last R: a join fills the first free one.
+        self.listen_address = listen
+        self.remote_workers = int(remote_workers or 0)
+        if self.remote_workers and not listen:
+            raise UserError('remote workers need an address to listen on (--listen HOST:PORT)')
+        if not 0 <= self.remote_workers <= self.n_workers:
+            raise UserError(f'{self.remote_workers} remote workers: at most the {self.n_workers} workers in all')
+        if listen and not key:
+            raise UserError('listening for remote workers needs the control key '
+                            f'(--key-file FILE or ${control.KEY_ENV})')
+        for h in self.workers[self.n_workers - self.remote_workers:]:
+            h.remote = True
+        self.key = key
+        self.join_timeout_s = join_timeout_s
+        self._tcp = None
         # A hot spare (started, imports done, no nodes) takes over a dead worker: a cold
         # start of Python + rclpy + the node modules takes seconds on a loaded machine.
         self.spare = spare
@@ -131,9 +161,16 @@ class Coordinator:
     # ---- start / stop ---------------------------------------------------------------------
     def start(self):
         interrupt.on_signal(self.quiesce)
-        self._listener, key_env = control.listen(tempfile.gettempdir())
+        self._listener, key_env = control.listen(tempfile.gettempdir(), self.key)
         self.env.update(key_env)
-        threading.Thread(target=self._accept_loop, daemon=True, name='coordinator-accept').start()
+        threading.Thread(target=self._accept_loop, args=(self._listener,), daemon=True,
+                         name='coordinator-accept').start()
+        if self.listen_address:
+            self._tcp = control.listen_tcp(self.listen_address, self.key)
+            self.say(f'listening for remote workers on {self.listen_address}')
+            threading.Thread(target=self._accept_loop, args=(self._tcp,), daemon=True,
+                             name='coordinator-accept-tcp').start()
+            threading.Thread(target=self._heartbeats, daemon=True, name='coordinator-heartbeat').start()
         self.allocation = allocate(self.costs.quarter_costs(), self.n_workers)
         for w, keys in self.allocation.workers.items():
             for k in keys:
@@ -141,7 +178,11 @@ class Coordinator:
         self.say(f'allocation ({self.allocation.case}): ' + '; '.join(
             f'worker {w}: {", ".join(keys)}' for w, keys in self.allocation.workers.items()))
         for h in self.workers:
-            self._spawn(h)
+            if not h.remote:
+                self._spawn(h)
+        if self.remote_workers:
+            self.say(f'waiting for {self.remote_workers} remote worker(s): `worker --coordinator '
+                     f'{self.listen_address}` with the same key on the other host(s)')
         for h in self.workers:
             self._wait_ready(h)
             self._attach_all(h)
@@ -169,6 +210,8 @@ class Coordinator:
         deadline = time.monotonic() + timeout
         for h in handles:
             if h.proc is None:
+                if h.conn is not None:        # a remote worker: it stops on STOP or the close
+                    h.conn.close()
                 continue
             try:
                 h.proc.wait(max(0.1, deadline - time.monotonic()))
@@ -177,11 +220,9 @@ class Coordinator:
                 h.proc.wait()
             if h.log:
                 h.log.close()
-        if self._listener is not None:
-            address = self._listener.address
-            self._listener.close()
-            if os.path.exists(address):
-                os.unlink(address)
+        for listener in (self._listener, self._tcp):
+            if listener is not None:
+                listener.close()
 
     def __enter__(self):
         return self.start()
@@ -217,6 +258,7 @@ class Coordinator:
     def _spawn(self, h: WorkerHandle):
         h.ready.clear()
         h.alive = False
+        h.remote, h.host = False, ''      # a remote slot restored here is a local worker now
         if h.log:
             h.log.close()
         h.log = open(self.log_dir / (f'worker_{h.index}.log' if h.index >= 0 else 'worker_spare.log'), 'a')
@@ -230,6 +272,14 @@ class Coordinator:
         h.proc = subprocess.Popen(cmd, stdout=h.log, stderr=subprocess.STDOUT, env=self.env)
 
     def _wait_ready(self, h: WorkerHandle):
+        if h.remote:
+            deadline = time.monotonic() + self.join_timeout_s
+            while not h.ready.wait(0.1):
+                if time.monotonic() > deadline:
+                    raise UserError(f'worker {h.index}: no remote worker joined within '
+                                    f'{self.join_timeout_s:.0f} s (start `worker --coordinator '
+                                    f'{self.listen_address}` with the same key on the other host)')
+            return
         deadline = time.monotonic() + START_TIMEOUT_S
         while not h.ready.wait(0.1):
             if h.proc.poll() is not None or time.monotonic() > deadline:
@@ -240,40 +290,116 @@ class Coordinator:
         lines = (self.log_dir / (f'worker_{h.index}.log' if h.index >= 0 else 'worker_spare.log')).read_text().strip().splitlines()
         return lines[-1] if lines else 'no output'
 
-    def _accept_loop(self):
+    def _accept_loop(self, listener):
         while not self._stopping:
             try:
-                conn = self._listener.accept()
-                hello = conn.recv()
-            except (OSError, EOFError):
+                conn = listener.accept()
+            except control.AuthError as e:
+                self.say(str(e))
+                continue
+            except OSError:
                 if self._stopping:
                     return
                 continue
-            if hello[0] != control.HELLO or not -1 <= hello[1] < len(self.workers):
-                conn.close()
-                continue
-            h = self.workers[hello[1]] if hello[1] >= 0 else self._spare
-            if h is None:
-                conn.close()
-                continue
-            h.conn, h.pid, h.alive = conn, hello[2], True
-            threading.Thread(target=self._read_loop, args=(h, conn), daemon=True,
-                             name=f'coordinator-worker-{h.index}').start()
-            h.ready.set()
+            # The handshake is done; a joining worker's start-up must not hold other joins.
+            threading.Thread(target=self._admit, args=(conn,), daemon=True,
+                             name='coordinator-admit').start()
+
+    def _admit(self, conn):
+        try:
+            hello = conn.recv(timeout=control.HANDSHAKE_TIMEOUT_S)
+            if hello[0] != control.HELLO:
+                raise EOFError(f'expected hello, got {hello[0]!r}')
+            if hello[1] == control.REMOTE:
+                self._join(conn, hello)
+                return
+        except (EOFError, OSError, control.AuthError) as e:
+            self.say(f'control connection from {conn.peer} dropped before it said hello: {e}')
+            conn.close()
+            return
+        if not -1 <= hello[1] < len(self.workers) or conn.is_tcp:
+            conn.close()
+            return
+        h = self.workers[hello[1]] if hello[1] >= 0 else self._spare
+        if h is None:
+            conn.close()
+            return
+        self._bind(h, conn, hello[2])
+
+    def _bind(self, h, conn, pid):
+        h.conn, h.pid, h.alive = conn, pid, True
+        threading.Thread(target=self._read_loop, args=(h, conn), daemon=True,
+                         name=f'coordinator-worker-{h.index}').start()
+        h.ready.set()
+
+    def _join(self, conn, hello):
+        """A remote worker: the first free remote slot, the graph's configuration, then its
+        second hello once it is up (rclpy, node modules)."""
+        host = f'{hello[3]} ({conn.peer})' if len(hello) > 3 else conn.peer
+        with self._ops:
+            h = next((w for w in self.workers if w.remote and not w.alive and not w.joining
+                      and not w.ready.is_set()), None)
+            if h is None or self._stopping or self._quiet:
+                self.say(f'remote worker {host} turned away: every remote slot is taken')
+                try:
+                    conn.send((control.STOP,))
+                finally:
+                    conn.close()
+                return
+            h.joining = True
+        try:
+            conn.send((control.WELCOME, h.index, self._remote_config()))
+            ready = conn.recv(timeout=START_TIMEOUT_S)
+            if ready[0] != control.HELLO:
+                raise EOFError(f'expected hello, got {ready[0]!r}')
+        except (EOFError, OSError, control.AuthError) as e:
+            self.say(f'remote worker {host} dropped while starting: {e}')
+            conn.close()
+            h.joining = False
+            return
+        h.host, h.joining = host, False
+        self.say(f'remote worker {host} joined as worker {h.index} (pid {ready[2]} there)')
+        self._bind(h, conn, ready[2])
+
+    def _remote_config(self) -> dict:
+        """What a worker on another host needs: the files the node specs name (rig,
+        params: paths here, contents there), the namespace and its remappings."""
+        files = {self.rig_file: Path(self.rig_file).read_text()}
+        if self.params_file:
+            files[self.params_file] = Path(self.params_file).read_text()
+        return {'files': files, 'params_file': self.params_file, 'namespace': self.namespace or '/',
+                'ros_args': ros_args(self.remappings)}
+
+    def _heartbeats(self):
+        # A remote host that dies sends no FIN: its worker is declared dead when its pings
+        # stop (read loop timeout); these pings tell remote workers the same about us.
+        while not self._stopping:
+            for h in list(self.workers):
+                if h.remote and h.alive:
+                    self._send(h, (control.PING,))
+            time.sleep(control.HEARTBEAT_S)
 
     def _read_loop(self, h: WorkerHandle, conn):
+        timeout = control.HEARTBEAT_TIMEOUT_S if conn.is_tcp else None
+        why = 'its connection closed'
         try:
             while True:
-                msg = conn.recv()
+                msg = conn.recv(timeout=timeout)
                 if msg[0] == control.SNAPSHOT:
                     self.snapshots[msg[1]] = msg[2]
                 elif msg[0] == control.REPLY:
                     with self._reply_cond:
                         self._replies[msg[1]] = msg[2]
                         self._reply_cond.notify_all()
-        except (EOFError, OSError):
-            pass
+        except socket.timeout:
+            why = f'no heartbeat for {timeout:.0f} s'
+            conn.close()
+        except (EOFError, OSError, control.AuthError) as e:
+            if isinstance(e, control.AuthError):
+                why = str(e)
         if h.conn is conn:            # not an old connection of a worker already replaced
+            if h.remote and not self._stopping:
+                self.say(f'remote worker {h.index} on {h.host} lost: {why}')
             h.alive = False
             with self._dead_cond:
                 self._dead.append((h.index, time.monotonic()))
@@ -354,8 +480,12 @@ class Coordinator:
             h = self.workers[index]
             if h.proc is not None:
                 h.proc.wait()
-            self.say(f'worker {index} died (exit code {h.proc.returncode}); restarting it '
-                     f'with {", ".join(self.nodes_of(index))}')
+                self.say(f'worker {index} died (exit code {h.proc.returncode}); restarting it '
+                         f'with {", ".join(self.nodes_of(index))}')
+            else:
+                h.ready.clear()
+                self.say(f'remote worker {index} is gone; restoring '
+                         f'{", ".join(self.nodes_of(index))} on a local worker')
             try:
                 with self._ops:
                     spare, self._spare = self._spare, None

@@ -36,6 +36,8 @@ def parse_args(argv=None):
                     help='worker processes (M; default, or 0: the CPU count)')
     ap.add_argument('--no-rebalance', action='store_true')
     ap.add_argument('--log-dir', help='worker logs (default: a temporary folder)')
+    from multicam_ego_motion.replay import add_remote_arguments
+    add_remote_arguments(ap)
     return ap.parse_args(argv)
 
 
@@ -52,6 +54,8 @@ def main(argv=None):
         params = Path(args.params) if args.params else package_share.default_params()
         if not params.is_file():
             raise UserError(f'params file not found: {params}')
+        from multicam_ego_motion.replay import remote_options
+        remote = remote_options(args)
         if args.workers < 0:
             raise UserError(f'--workers {args.workers}: give 1 or more, or 0 for the CPU count')
     except UserError as e:
@@ -59,7 +63,7 @@ def main(argv=None):
         return 2
     with interrupt.handling():
         try:
-            code = _run(args, rig, params.resolve(), ros_argv)
+            code = _run(args, rig, params.resolve(), ros_argv, remote)
         except interrupt.Interrupted:
             code = None
         if interrupt.received() is not None:
@@ -82,7 +86,7 @@ def _node(ros_argv):
     return node
 
 
-def _run(args, rig, params, ros_argv) -> int:
+def _run(args, rig, params, ros_argv, remote) -> int:
     import rclpy
     from rclpy.clock import Clock, ClockType
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -102,7 +106,7 @@ def _run(args, rig, params, ros_argv) -> int:
                                   log_dir=args.log_dir, rebalance=not args.no_rebalance,
                                   overrides={kind: {'use_sim_time': sim_time} for kind in KINDS},
                                   namespace=node.get_namespace(),
-                                  logger=lambda text: node.get_logger().info(text))
+                                  logger=lambda text: node.get_logger().info(text), **remote)
         interrupt.note(kept=f'nothing written (worker logs in {coordinator.log_dir})')
         node.get_logger().info(
             f'rig {args.rig}, params {params}, {coordinator.n_workers} workers, namespace '

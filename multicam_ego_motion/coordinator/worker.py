@@ -9,6 +9,16 @@ state it carries on), detach a node (returning its state), stop. After every fra
 node (quarter, general arbiter) sends its state to the coordinator as a snapshot, which is
 what a restarted worker is restored from.
 
+On another host: `worker --coordinator HOST:PORT [--key-file F]` (`ros2 run
+multicam_ego_motion worker`, `ego-motion worker`) joins a coordinator that listens there
+(control.py: the shared key from the file or $EGO_MOTION_CONTROL_KEY, HMAC both ways). The
+coordinator gives it a slot, the rig and params files' contents and the namespace's
+remappings; images and estimates go over DDS as on one host (the hosts' DDS must discover
+each other: same ROS_DOMAIN_ID, a discovery range or initial peers that reach). A worker that
+loses its coordinator (connection closed, or no heartbeat for control.HEARTBEAT_TIMEOUT_S)
+stops its nodes and exits with status 3: a supervisor (systemd, a launch file's respawn)
+starts it again and it joins the next coordinator.
+
 Dies with its parent: PR_SET_PDEATHSIG, and the end of the control channel (a coordinator
 that is gone closes it) both end the process, so no worker outlives its coordinator.
 Signals: SIGTERM ends it (also PR_SET_PDEATHSIG's); SIGINT and SIGHUP, which a terminal sends
@@ -21,7 +31,9 @@ import os
 import pickle
 import queue
 import signal
+import socket
 import sys
+import tempfile
 import threading
 import time
 
@@ -97,8 +109,10 @@ def linked(node, shared=(), graph_only=False) -> bool:
 
 
 class Worker:
-    def __init__(self, index: int, conn, params_file, namespace: str = '/'):
+    def __init__(self, index: int, conn, params_file, namespace: str = '/', paths=None):
         self.index = index
+        self.paths = paths or {}        # coordinator's file path -> this host's copy (remote)
+        self.lost = None                # why the coordinator was lost, if it was
         self.conn = conn
         self.params_file = params_file
         self.send_lock = threading.Lock()
@@ -230,13 +244,20 @@ class Worker:
             self.conn.send(msg)
 
     def read_commands(self):
+        # Over TCP the coordinator pings every second: silence means its host is gone.
+        timeout = control.HEARTBEAT_TIMEOUT_S if self.conn.is_tcp else None
         try:
             while True:
-                self.inbox.put(self.conn.recv())
-                self.wake.trigger()
-        except (EOFError, OSError):
-            self.inbox.put((control.STOP,))     # coordinator gone: end with it
-            self.wake.trigger()
+                msg = self.conn.recv(timeout=timeout)
+                if msg[0] != control.PING:
+                    self.inbox.put(msg)
+                    self.wake.trigger()
+        except socket.timeout:
+            self.lost = f'no heartbeat for {timeout:.0f} s'
+        except (EOFError, OSError, control.AuthError) as e:
+            self.lost = str(e) or 'connection closed'
+        self.inbox.put((control.STOP,))     # coordinator gone: end with it
+        self.wake.trigger()
 
     def serve(self):
         while True:
@@ -281,6 +302,9 @@ class Worker:
 
     def attach(self, req, spec, state_bytes, wait_links=False):
         key = spec['key']
+        if self.paths:          # files named by the coordinator's paths: this host's copies
+            spec = dict(spec, parameters={k: self.paths.get(v, v) if isinstance(v, str) else v
+                                          for k, v in spec['parameters'].items()})
         try:
             node = create_node(spec, self.params_file,
                                **({'shared_inputs': True} if spec['kind'] == 'quarter' else {}))
@@ -374,13 +398,94 @@ class Worker:
 
     def spin(self):
         threading.Thread(target=self.read_commands, daemon=True).start()
-        self.send((control.HELLO, self.index, os.getpid()))
+        self.send((control.HELLO, self.index, os.getpid(), socket.gethostname()))
+        if self.conn.is_tcp:
+            control.keep_alive(self.conn, threading.Event())
         try:
             self._spin()
         finally:
             for node in self.hosted.values():
                 node.destroy_node()
             self.node.destroy_node()
+
+
+def _join(args):
+    """Connect, authenticate, get a slot and the graph's configuration."""
+    key = control.load_key(args.key_file)
+    deadline = time.monotonic() + args.connect_timeout
+    while True:
+        try:
+            conn = control.connect_tcp(args.coordinator, key)
+            break
+        except control.AuthError:
+            raise
+        except ConnectionError as e:
+            if time.monotonic() > deadline:
+                raise UserError(f'{e} (tried for {args.connect_timeout:.0f} s)') from None
+            time.sleep(0.5)
+    conn.send((control.HELLO, control.REMOTE, os.getpid(), socket.gethostname()))
+    msg = conn.recv(timeout=control.HANDSHAKE_TIMEOUT_S)
+    if msg[0] != control.WELCOME:
+        conn.close()
+        raise UserError(f'coordinator at {args.coordinator} has no free worker slot')
+    return conn, msg[1], msg[2]
+
+
+def run_remote(args) -> int:
+    if not args.coordinator:
+        raise UserError('give --coordinator HOST:PORT (the address the coordinator listens on)')
+    import cv2
+    cv2.setNumThreads(1)
+    for kind in ('quarter', 'camera_arbiter', 'general_arbiter'):
+        node_class(kind)
+    try:
+        conn, index, config = _join(args)
+    except control.AuthError as e:
+        raise UserError(f'{e}') from None
+    print(f'worker: joined the coordinator at {args.coordinator} as worker {index}', flush=True)
+    folder = tempfile.mkdtemp(prefix='ego_motion_remote_worker_')
+    paths = {}
+    for i, (path, text) in enumerate(sorted(config['files'].items())):
+        local = os.path.join(folder, f'{i}_{os.path.basename(path)}')
+        with open(local, 'w') as f:
+            f.write(text)
+        paths[path] = local
+    # Ctrl-C, SIGTERM, SIGHUP: stop the nodes and exit (rclpy's handlers, which call these,
+    # wake the executor's blocking wait).
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, lambda *a: (_ for _ in ()).throw(SystemExit(0)))
+    rclpy.init(args=['worker', *config['ros_args']],
+               signal_handler_options=rclpy.signals.SignalHandlerOptions.ALL)
+    worker = None
+    try:
+        worker = Worker(index, conn, paths.get(config['params_file']), config['namespace'], paths)
+        worker.spin()
+    except (KeyboardInterrupt, SystemExit, ExternalShutdownException):
+        pass
+    finally:
+        rclpy.try_shutdown()
+        import shutil
+        shutil.rmtree(folder, ignore_errors=True)
+    if worker is not None and worker.lost:
+        print(f'worker: lost the coordinator at {args.coordinator} ({worker.lost}); '
+              'stopped its nodes, exiting', flush=True)
+        return 3
+    print('worker: stopped by the coordinator', flush=True)
+    return 0
+
+
+def main_remote(argv=None):
+    """Console entry point `worker` (ros2 run multicam_ego_motion worker)."""
+    from rclpy.utilities import remove_ros_args
+    from multicam_ego_motion.coordinator import remote_worker
+    ap = argparse.ArgumentParser(prog='worker', description='join a coordinator\'s worker pool from this host')
+    remote_worker.configure_parser(ap)
+    args = ap.parse_args(remove_ros_args(sys.argv if argv is None else ['worker', *argv])[1:])
+    try:
+        return run_remote(args)
+    except UserError as e:
+        print(f'worker: error: {e}', file=sys.stderr, flush=True)
+        return 2
 
 
 def main(argv=None):
