@@ -249,6 +249,8 @@ class Worker:
         try:
             while True:
                 msg = self.conn.recv(timeout=timeout)
+                if msg[0] == control.STOP:
+                    break           # the coordinator closes the channel next: not a loss
                 if msg[0] != control.PING:
                     self.inbox.put(msg)
                     self.wake.trigger()
