@@ -228,10 +228,12 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
               use_wheel=True, ack_timeout=120.0, start_offset=0.0, duration=None,
               migrate_every=0, rebalance=True, logger=print, record_topics=None,
               lockstep_depth=LOCKSTEP_DEPTH, debug_images=False, kill_worker_at=None,
-              remote=None) -> GraphRun:
+              remote=None, remote_cpu=False) -> GraphRun:
     """Coordinator + in-process player and recorder: one run of the graph over a bag.
     kill_worker_at (lockstep; the bench's crash row): SIGKILL the last worker once this many
-    frames were acknowledged, as a crash would."""
+    frames were acknowledged, as a crash would. remote: Coordinator keywords for remote
+    workers (listen, remote_workers, key); remote_cpu: their processes are on this machine
+    (network namespaces, the bench's two-host row) and their CPU counts with the workers'."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
@@ -309,7 +311,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
         interrupt.note(progress=player.position)
         coordinator.link_waiter = make_link_waiter(rig, player)
         coordinator.on_restored.append(lambda w: player.request_republish())
-        workers = coordinator.worker_pids()
+        workers = coordinator.worker_pids() + (coordinator.remote_pids() if remote_cpu else [])
         cpu0 = cpu_seconds(workers), cpu_seconds([os.getpid()])
         t_play = time.monotonic()
         result = player.play(node)

@@ -11,8 +11,10 @@ point, the targets, one row each with met or missed (targets.py), and the paper'
 (parallel_time_model) fed with the median stage times measured in the M = 2 lockstep run,
 next to the paper's Fig. 6(d). Measured, not asserted. The VGA bags are generated on first
 use into --camera-rate-bags and reused; a worker killed mid-run (worker_crash.py: time to
-restore). --skip-camera-rate, --skip-live-vs-offline and --skip-worker-crash leave
-out the long parts.
+restore), and the two-host row (two_hosts.py: M = 2 with the second worker in another
+network namespace, i.e. across UDP and a TCP control channel, beside the one-host M = 2 row;
+skipped with the reason where namespaces cannot be made). --skip-camera-rate,
+--skip-live-vs-offline, --skip-worker-crash and --skip-two-hosts leave out the long parts.
 Writes DIR/bench.md and DIR/model.png.
 """
 import os
@@ -42,6 +44,8 @@ def configure_parser(p):
                    help='leave out accuracy live vs offline (VGA at 15 and 30 Hz, lockstep and rate mode)')
     p.add_argument('--skip-worker-crash', action='store_true',
                    help='leave out the crash row (a worker killed mid-run: time to restore)')
+    p.add_argument('--skip-two-hosts', action='store_true',
+                   help='leave out the two-host row (M = 2 across two network namespaces; needs root)')
 
 
 def stage_medians(statuses, cameras):
@@ -111,6 +115,11 @@ def run(args) -> int:
         from multicam_ego_motion.bench.worker_crash import worker_crash
         crash = worker_crash(args.bag, out, rig, rig_file, params, n_frames, args.duration)
         lines += [''] + crash.lines()
+
+    # two hosts (network namespaces of this machine) beside the one-host M = 2 row
+    if not args.skip_two_hosts:
+        from multicam_ego_motion.bench.two_hosts import two_hosts
+        lines += [''] + two_hosts(args.bag, out, rig_file, params, args.duration).lines(d.best[2])
 
     # 6. track CPU per tracked point (lockstep, M = 2)
     statuses = read_statuses(out / 'lockstep_m2' / 'output')

@@ -244,6 +244,10 @@ class Coordinator:
         handles = self.workers + ([self._spare] if self._spare is not None else [])
         return [h.proc.pid for h in handles if h.proc is not None and h.proc.poll() is None]
 
+    def remote_pids(self) -> List[int]:
+        """Process ids the remote workers gave (on their own hosts)."""
+        return [h.pid for h in self.workers if h.remote and h.alive and h.pid]
+
     def nodes_of(self, worker: int) -> List[str]:
         return [k for k, w in self.placement.items() if w == worker]
 
