@@ -20,6 +20,7 @@ ENTRY_POINTS = {
     'camera_arbiter': 'arbiter_node.camera_arbiter_node:main',
     'general_arbiter': 'arbiter_node.general_arbiter_node:main',
     'coordinator': 'multicam_ego_motion.coordinator.coordinator_node:main',
+    'worker': 'multicam_ego_motion.coordinator.worker:main_remote',
     'ego-motion': 'multicam_ego_motion.cli:main',
 }
 

@@ -10,6 +10,9 @@ namespace (`--ros-args -r __ns:=/robot1`) is the whole graph's, nodes and topics
 (coordinator/graph_spec.py); its `use_sim_time` parameter is every graph node's. Without
 --params, the package's config/params.yaml (package_share.py: a checkout's or the install
 space's share/multicam_ego_motion/config).
+
+Workers on other hosts: `--listen HOST:PORT --remote-workers R --key-file F` (R of the M
+workers join with `ros2 run multicam_ego_motion worker --coordinator HOST:PORT`; coordinator.py).
 """
 import argparse
 import os
