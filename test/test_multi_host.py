@@ -136,27 +136,33 @@ def test_worker_without_the_key_is_refused_on_both_sides(lockstep_runs):
                      stdout), stdout[-3000:]
 
 
-def test_killed_remote_host_is_recovered(hosts, env, tmp_path_factory):
+def run_with_a_failure(hosts, env, tmp_path_factory, name, fail):
+    """A lockstep run on the three hosts; `fail()` is called once KILL_AT /odom were seen
+    (a counter subscribed in host 0). Returns (replay stdout, return code, what fail()
+    returned, the remote workers' log files)."""
     e, key_file = env
-    out = tmp_path_factory.mktemp('multi_host') / 'host_killed'
+    out = tmp_path_factory.mktemp('multi_host') / name
     out.mkdir()
     counter = hosts.run(0, [sys.executable, '-c', ODOM_COUNTER], env=e, stdout=subprocess.PIPE,
                         stderr=subprocess.DEVNULL, text=True, cwd=REPO)
     replay = replay_in_host0(hosts, e, key_file, out, KILL_DURATION_S)
-    start_workers(hosts, e, key_file, out)
-    killed = []
+    logs = start_workers(hosts, e, key_file, out)
+    done = []
 
     def watch():
         for line in counter.stdout:
             if int(line) >= KILL_AT:
-                killed.extend(hosts.kill_host(2))      # every process of host 2: a host crash
+                done.append(fail())
                 return
     threading.Thread(target=watch, daemon=True).start()
     stdout, _ = replay.communicate(timeout=600)
     counter.kill()
-    assert killed, f'host 2 was never killed (fewer than {KILL_AT} /odom seen):\n{stdout[-3000:]}'
-    assert replay.returncode == 0, stdout[-3000:]
-    assert re.search(r'remote worker \d on .* lost', stdout), stdout[-3000:]
+    assert done, f'the failure never came (fewer than {KILL_AT} /odom seen):\n{stdout[-3000:]}'
+    return out, stdout, replay.returncode, done[0], logs
+
+
+def assert_recovered(out, stdout, code):
+    assert code == 0, stdout[-3000:]
     assert re.search(r'remote worker \d is gone; restoring', stdout), stdout[-3000:]
     assert ', 1 worker restarts' in stdout, stdout[-3000:]
     frames = int(summary_value(stdout, 'frames played'))
@@ -164,3 +170,32 @@ def test_killed_remote_host_is_recovered(hosts, env, tmp_path_factory):
     assert int(summary_value(stdout, '/odom messages')) == frames
     assert len(poses((out / 'odometry.tum').read_text())) == frames
     assert float(summary_value(stdout, 'ATE RMSE, aligned on first pose [% of path]')) < 2.0
+
+
+def test_killed_remote_host_is_recovered(hosts, env, tmp_path_factory):
+    """Every process of host 2 killed: the kernel closes the worker's connection."""
+    out, stdout, code, killed, _ = run_with_a_failure(
+        hosts, env, tmp_path_factory, 'host_killed', lambda: hosts.kill_host(2))
+    assert killed, 'no process was running in host 2'
+    assert re.search(r'remote worker \d on .* lost: its connection closed', stdout), stdout[-3000:]
+    assert_recovered(out, stdout, code)
+
+
+def test_unreachable_host_is_recovered(hosts, env, tmp_path_factory):
+    """Host 2's link goes down (a host that died or a cable pulled: no FIN, only silence): the
+    coordinator misses its heartbeats and restores its nodes; the cut-off worker misses the
+    coordinator's, stops its nodes and exits with 3."""
+    def cut():
+        netns._ip('-n', hosts.names[2], 'link', 'set', 'eth0', 'down')
+        return True
+    try:
+        out, stdout, code, _, logs = run_with_a_failure(hosts, env, tmp_path_factory, 'host_unreachable', cut)
+        assert re.search(r'remote worker \d on .* lost: no heartbeat for 5 s', stdout), stdout[-3000:]
+        assert_recovered(out, stdout, code)
+        deadline = time.monotonic() + 30
+        cut_off = logs[1]
+        while 'lost the coordinator' not in cut_off.read_text() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert 'no heartbeat for 5 s); stopped its nodes, exiting' in cut_off.read_text(), cut_off.read_text()[-2000:]
+    finally:
+        netns._ip('-n', hosts.names[2], 'link', 'set', 'eth0', 'up')

@@ -2,7 +2,7 @@
 coordinator's host and one on a second host (two network namespaces of this machine,
 bench/netns.py: UDPv4 between them, the control channel over TCP with the shared key).
 Wall and CPU per frame (workers on both hosts, and the replay process), beside the one-host
-M = 2 row: the difference is what crossing hosts costs (UDP through a network stack instead
+M = 2 row (each ran twice, the faster counts): the difference is what crossing hosts costs (UDP through a network stack instead
 of shared memory, the control channel over TCP). Skipped, with the reason printed, where
 namespaces cannot be made (not root, no `ip`).
 
@@ -56,26 +56,30 @@ def two_hosts(bag, out: Path, rig_file, params, duration=None) -> TwoHostFigures
         return TwoHostFigures(skipped=reason)
     print(f'bench: graph on {Path(bag).name}, M = {WORKERS}, lockstep, two hosts (network namespaces) ...',
           flush=True)
-    run_dir = (out / 'two_hosts_m2').resolve()
-    run_dir.mkdir(parents=True)
     repo = Path(__file__).resolve().parents[2]
     env = dict(os.environ, EGO_MOTION_CONTROL_KEY=secrets.token_hex(32),
                PYTHONPATH=os.pathsep.join([str(repo)] + [p for p in [os.environ.get('PYTHONPATH')] if p]))
     address = f'{netns.SUBNET}.1:{PORT}'
+    runs = []
     with netns.Hosts(2, free_domain()) as hosts:
-        with open(run_dir / 'remote_worker.log', 'w') as log:
-            hosts.run(1, [sys.executable, '-m', 'multicam_ego_motion.cli', 'worker', '--coordinator', address],
-                      env=env, stdout=log, stderr=subprocess.STDOUT)
-            child = hosts.run(0, [sys.executable, '-m', 'multicam_ego_motion.bench.two_hosts', '--child',
-                                  bag, run_dir, rig_file, params, address]
-                              + (['--duration', duration] if duration else []),
-                              env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-            text, _ = child.communicate(timeout=1800)
-    (run_dir / 'run.log').write_text(text)
-    result = [l for l in text.splitlines() if l.startswith('{')]
-    if child.returncode or not result:
-        raise RuntimeError(f'two-host run failed (exit {child.returncode}): {text[-2000:]}')
-    return TwoHostFigures(**json.loads(result[-1]))
+        # twice, the faster counts, as the one-host rows (timing.py says why)
+        for suffix in ('', '_again'):
+            run_dir = (out / f'two_hosts_m2{suffix}').resolve()
+            run_dir.mkdir(parents=True)
+            with open(run_dir / 'remote_worker.log', 'w') as log:
+                hosts.run(1, [sys.executable, '-m', 'multicam_ego_motion.cli', 'worker', '--coordinator', address],
+                          env=env, stdout=log, stderr=subprocess.STDOUT)
+                child = hosts.run(0, [sys.executable, '-m', 'multicam_ego_motion.bench.two_hosts', '--child',
+                                      bag, run_dir, rig_file, params, address]
+                                  + (['--duration', duration] if duration else []),
+                                  env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                text, _ = child.communicate(timeout=1800)
+            (run_dir / 'run.log').write_text(text)
+            result = [l for l in text.splitlines() if l.startswith('{')]
+            if child.returncode or not result:
+                raise RuntimeError(f'two-host run failed (exit {child.returncode}): {text[-2000:]}')
+            runs.append(TwoHostFigures(**json.loads(result[-1])))
+    return min(runs, key=lambda f: f.wall_ms)
 
 
 def _child(argv=None):
