@@ -210,7 +210,12 @@ class Coordinator:
         deadline = time.monotonic() + timeout
         for h in handles:
             if h.proc is None:
-                if h.conn is not None:        # a remote worker: it stops on STOP or the close
+                if h.conn is not None:
+                    # A remote worker: it reads STOP, stops its nodes and closes its end; our
+                    # close after that cannot reset the connection before STOP was read.
+                    end = min(deadline, time.monotonic() + 2.0)
+                    while h.alive and time.monotonic() < end:
+                        time.sleep(0.02)
                     h.conn.close()
                 continue
             try:
@@ -311,7 +316,9 @@ class Coordinator:
 
     def _admit(self, conn):
         try:
-            hello = conn.recv(timeout=control.HANDSHAKE_TIMEOUT_S)
+            # a local worker says hello once rclpy and its node are up (seconds on a busy
+            # host); a remote one at once (its second hello comes when it is up: _join)
+            hello = conn.recv(timeout=control.HANDSHAKE_TIMEOUT_S if conn.is_tcp else START_TIMEOUT_S)
             if hello[0] != control.HELLO:
                 raise EOFError(f'expected hello, got {hello[0]!r}')
             if hello[1] == control.REMOTE:
