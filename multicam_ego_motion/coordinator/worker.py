@@ -411,9 +411,8 @@ class Worker:
             self.node.destroy_node()
 
 
-def _join(args):
+def _join(args, key):
     """Connect, authenticate, get a slot and the graph's configuration."""
-    key = control.load_key(args.key_file)
     deadline = time.monotonic() + args.connect_timeout
     while True:
         try:
@@ -436,12 +435,13 @@ def _join(args):
 def run_remote(args) -> int:
     if not args.coordinator:
         raise UserError('give --coordinator HOST:PORT (the address the coordinator listens on)')
+    key = control.load_key(args.key_file)          # a missing key fails before the imports
     import cv2
-    cv2.setNumThreads(1)
+    cv2.setNumThreads(1)                            # as a local worker (main() says why)
     for kind in ('quarter', 'camera_arbiter', 'general_arbiter'):
         node_class(kind)
     try:
-        conn, index, config = _join(args)
+        conn, index, config = _join(args, key)
     except control.AuthError as e:
         raise UserError(f'{e}') from None
     print(f'worker: joined the coordinator at {args.coordinator} as worker {index}', flush=True)
