@@ -454,8 +454,13 @@ def run_remote(args) -> int:
         paths[path] = local
     # Ctrl-C, SIGTERM, SIGHUP: stop the nodes and exit (rclpy's handlers, which call these,
     # wake the executor's blocking wait).
+    signals = []
+
+    def on_signal(signum, frame):
+        signals.append(signum)
+        raise SystemExit(0)
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, lambda *a: (_ for _ in ()).throw(SystemExit(0)))
+        signal.signal(sig, on_signal)
     rclpy.init(args=['worker', *config['ros_args']],
                signal_handler_options=rclpy.signals.SignalHandlerOptions.ALL)
     worker = None
@@ -472,6 +477,10 @@ def run_remote(args) -> int:
         print(f'worker: lost the coordinator at {args.coordinator} ({worker.lost}); '
               'stopped its nodes, exiting', flush=True)
         return 3
+    if signals:
+        print(f'worker: stopped by {signal.Signals(signals[0]).name}; its nodes are restored '
+              'elsewhere by the coordinator', flush=True)
+        return 128 + signals[0]
     print('worker: stopped by the coordinator', flush=True)
     return 0
 
