@@ -24,6 +24,7 @@ from camera_pose_nodes.landmark_map import LandmarkMap, bearings_odom, angle_deg
 from camera_pose_nodes.pose_ekf import PoseEKF
 from camera_pose_nodes.pose_estimate import PoseEstimate, UNINFORMATIVE_VARIANCE, uninformative
 from camera_pose_nodes.quarter_region import QuarterRegion
+from camera_pose_nodes.stereo_match import StereoConfig, StereoPair
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.geometry.rig import CameraMount
 from multicam_ego_motion.geometry.se3 import rotvec_to_R
@@ -97,6 +98,13 @@ PARAMETERS = {
     'ground_plane': (True, 'put landmarks that lie on the floor onto it: their depth is then metric from the camera height (see ground_plane; needs the rig\'s floor_z)', None, None),
     'ground_tolerance': (0.3, 'a floor landmark\'s depth is never farther than this fraction from its ray\'s floor intersection', 0.001, 1.0),
     'ground_map_scale_std': (0.03, 'relative scale uncertainty of the fused poses, allowed for when judging a landmark on the floor', 0.0, 1.0),
+    'stereo': (True, "with a camera whose view overlaps this one (rig stereo_pairs): match the tracks without a landmark into its image of the same stamp and triangulate them from the baseline, metric from one frame (stereo_match); no partner: no effect", None, None),
+    'stereo_pyramid_levels': (4, 'Lucas-Kanade pyramid levels of the search into the partner image (disparities up to ~10 x 2^levels px)', 0, 6),
+    'stereo_fb_px': (1.0, 'forward-backward error that rejects a stereo match (px)', 0.05, 10.0),
+    'stereo_epipolar_px': (1.5, "a stereo match farther than this from its epipolar line (the rig's extrinsics) is rejected (px)", 0.05, 20.0),
+    'stereo_pixel_sigma': (0.5, "stereo matching noise (px, 1 sigma): the disparity noise in the stereo landmarks' covariance", 0.05, 10.0),
+    'stereo_max_range': (80.0, 'farthest stereo landmark, in baselines (far points carry little depth)', 2.0, 10000.0),
+    'stereo_prior_depth': (20.0, "where the search into the partner image starts, in baselines, while the quarter has no landmarks of its own (then: their median depth)", 1.0, 10000.0),
 }
 
 
@@ -167,7 +175,28 @@ class QuarterEstimator:
                                      p.refine_factor, focal_px=0.5 * (intrinsics.fx + intrinsics.fy),
                                      pixel_sigma=p.pixel_sigma)
         self.sigma_uv = (p.pixel_sigma / intrinsics.fx, p.pixel_sigma / intrinsics.fy)
+        self.stereo = None          # StereoPair with the partner camera (set_partner)
         self.reset()
+
+    def set_partner(self, partner: CameraMount, intrinsics: CameraIntrinsics):
+        """The camera whose view overlaps this one (a stereo pair, Rig.stereo_pairs) and its
+        intrinsics: from then on apply_fused_pose takes its image of the same stamp."""
+        if not self.params.stereo:
+            return
+        p = self.params
+        base = StereoPair(self.T_base_cam, partner.T_base_cam, self.intrinsics, intrinsics,
+                          StereoConfig())
+        cfg = StereoConfig(window=p.klt_window, pyramid_levels=p.stereo_pyramid_levels,
+                           iterations=p.klt_iterations, epsilon_px=p.klt_epsilon_px,
+                           fb_px=p.stereo_fb_px, epipolar_px=p.stereo_epipolar_px,
+                           pixel_sigma=p.stereo_pixel_sigma, min_depth=p.min_depth,
+                           max_depth=min(p.max_depth, p.stereo_max_range * base.baseline))
+        self.stereo = StereoPair(self.T_base_cam, partner.T_base_cam, self.intrinsics, intrinsics, cfg)
+        self.partner_size = (intrinsics.width, intrinsics.height)
+
+    @property
+    def wants_partner_image(self) -> bool:
+        return self.stereo is not None
 
     def reset(self):
         self.tracker.reset()
@@ -422,10 +451,13 @@ class QuarterEstimator:
         return trails, status
 
     # ----- feedback from the general arbiter -----------------------------------------------
-    def apply_fused_pose(self, stamp_ns: int, T_odom_base: np.ndarray, cov6: np.ndarray) -> float:
+    def apply_fused_pose(self, stamp_ns: int, T_odom_base: np.ndarray, cov6: np.ndarray,
+                         partner_gray: Optional[np.ndarray] = None) -> float:
         """Realign to the fused pose of frame `stamp_ns`, then triangulate and prune
         landmarks with it. Returns the structure stage time (ms), also reported with the
-        next frame's estimate. An uninformative fused pose carries nothing and is ignored."""
+        next frame's estimate. An uninformative fused pose carries nothing and is ignored.
+        partner_gray: the stereo partner's image of the same stamp (set_partner), whose
+        matches give the tracks without a landmark a metric one."""
         self.extract_pending()     # the new features are part of the structure (floor seeding)
         t0 = time.thread_time()
         T = np.asarray(T_odom_base, float)
@@ -448,6 +480,8 @@ class QuarterEstimator:
         self._fused_cache = None
         self._prune_landmarks(stamp_ns, T)
         self._triangulate()
+        if self.stereo is not None and partner_gray is not None:
+            self._stereo_landmarks(stamp_ns, T, partner_gray)
         if first and self.uses_floor:
             self._seed_floor(stamp_ns, T)
         self._forget_unused_poses()
@@ -525,6 +559,41 @@ class QuarterEstimator:
                                       np.broadcast_to(c_o, (N, 3)), np.broadcast_to(n, (N, 3)),
                                       np.full(N, d), self.landmarks.sigma_n)
         self.landmarks.place(ids[valid], X[valid], C[valid])
+
+    def _stereo_landmarks(self, stamp_ns, T, gray_b):
+        """Tracks seen in this frame without a landmark: matched into the partner's image
+        of the same stamp and triangulated from the rig's baseline, placed in odom with the
+        fused pose. Every frame: the map of a camera that sees only far or fast-moving
+        points (a car's) never waits for parallax. A placed landmark is re-triangulated over
+        time like any other once its parallax allows (LandmarkMap.want)."""
+        gray_b = np.asarray(gray_b)
+        if gray_b.dtype != np.uint8 or gray_b.ndim != 2 \
+                or (gray_b.shape[1], gray_b.shape[0]) != self.partner_size:
+            raise UserError(f'{self.source}: stereo partner image is {gray_b.dtype} {gray_b.shape}, '
+                            f'expected gray uint8 {self.partner_size[0]}x{self.partner_size[1]} (CameraInfo)')
+        tr = self.tracker
+        has, _ = self.landmarks.rows(tr.ids)
+        seen = tr.last_stamps() == stamp_ns
+        rows = np.flatnonzero(~has & seen)
+        if not len(rows) or tr.prev_crop is None:
+            return
+        R_oc, c_o = self._camera_pose(T)
+        # the search starts at the depth of the quarter's own landmarks when it has some
+        prior = self.params.stereo_prior_depth * self.stereo.baseline
+        with_lm = has & seen
+        if with_lm.sum() >= 5:
+            _, X = self.landmarks.lookup(tr.ids[with_lm])
+            z = ((X - c_o) @ R_oc)[:, 2]
+            z = z[z > 0]
+            if len(z) >= 5:
+                prior = float(np.median(z))
+        ok, _, X_a, C_a = self.stereo.match(tr.prev_crop, self.region.offset, gray_b,
+                                            tr.last_px()[rows], prior)
+        if not ok.any():
+            return
+        X_o = X_a[ok] @ R_oc.T + c_o
+        C_o = R_oc @ C_a[ok] @ R_oc.T
+        self.landmarks.place(tr.ids[rows[ok]], X_o, C_o, on_floor=False)
 
     def _snap_to_floor(self, ids, R_oc, c_o, xy, T):
         """Floor landmarks onto the floor, judged from each one's newest view (body poses T)."""
