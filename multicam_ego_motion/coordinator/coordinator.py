@@ -208,10 +208,13 @@ class Coordinator:
 
     def image_readers(self, camera: str, placement=None) -> int:
         """How many subscriptions a camera's image topic has from the graph: one per worker
-        hosting any of its quarters (a worker takes each input once for all, worker.py)."""
+        hosting any of its quarters or of its stereo partners' quarters (they take its image
+        too; a worker takes each input once for all, worker.py)."""
         placement = self.placement if placement is None else placement
+        takers = {camera} | {c for c in self.rig.names
+                             if self.rig.stereo_partners(c)[:1] == [camera]}
         return len({w for k, w in placement.items() if self.specs[k].kind == 'quarter'
-                    and self.specs[k].parameters.get('camera') == camera})
+                    and self.specs[k].parameters.get('camera') in takers})
 
     # ---- processes and channel -----------------------------------------------------------
     def _spawn(self, h: WorkerHandle):
