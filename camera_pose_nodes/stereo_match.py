@@ -98,18 +98,20 @@ class StereoPair:
         hb, wb = gray_b.shape
         valid = np.all(np.isfinite(guess), axis=1)
         guess = np.where(valid[:, None], guess, px_a)
-        # Lucas-Kanade takes two images of one size: A's crop on a canvas of B's size (the
-        # crop holds every window around the quarter's features)
-        canvas = np.zeros_like(gray_b)
+        # Lucas-Kanade takes two images of one size: A's crop and the part of B where the
+        # crop's points land (shifted by their median predicted disparity), so that both
+        # hold real texture at every pyramid level (a crop pasted on a blank canvas put its
+        # edge into the coarse levels' windows, and matches failed near it)
         ox, oy = int(offset_a[0]), int(offset_a[1])
-        h = min(crop_a.shape[0], hb - oy)
-        w = min(crop_a.shape[1], wb - ox)
-        if h <= 0 or w <= 0:
-            return ok, px_b, X, C
-        canvas[oy:oy + h, ox:ox + w] = crop_a[:h, :w]
-        p0 = px_a.astype(np.float32)
-        p1, st1 = self._lk(canvas, gray_b, p0, guess.astype(np.float32))
-        back, st2 = self._lk(gray_b, canvas, p1, p0)
+        ch, cw = crop_a.shape
+        shift = np.round(np.median(guess[valid] - px_a[valid], axis=0)) if valid.any() else np.zeros(2)
+        bx, by = ox + int(shift[0]), oy + int(shift[1])
+        sub_b = _window(gray_b, bx, by, cw, ch)
+        p0 = (px_a - [ox, oy]).astype(np.float32)
+        g = (guess - [bx, by]).astype(np.float32)
+        p1, st1 = self._lk(crop_a, sub_b, p0, g)
+        back, st2 = self._lk(sub_b, crop_a, p1, p0)
+        p1 = p1 + np.float32([bx, by])
         good = valid & st1 & st2 & np.all(np.isfinite(p1), axis=1)
         good &= np.linalg.norm(back - p0, axis=1) < c.fb_px
         good &= (p1[:, 0] >= 0) & (p1[:, 0] <= wb - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= hb - 1)
@@ -145,6 +147,16 @@ class StereoPair:
         X[idx] = Xa
         C[idx] = Cov
         return ok, px_b, X, C
+
+
+def _window(img: np.ndarray, x0: int, y0: int, w: int, h: int) -> np.ndarray:
+    """img[y0:y0+h, x0:x0+w], the border replicated where it reaches outside."""
+    H, W = img.shape
+    pad = max(0, -x0, -y0, x0 + w - W, y0 + h - H)
+    if pad:
+        img = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+        x0, y0 = x0 + pad, y0 + pad
+    return np.ascontiguousarray(img[y0:y0 + h, x0:x0 + w])
 
 
 def overlap_fraction(T_base_a, T_base_b, intr_a: CameraIntrinsics, intr_b: CameraIntrinsics,
