@@ -15,6 +15,7 @@ from dataclasses import asdict, field, fields, make_dataclass
 from functools import lru_cache
 from typing import Dict, Optional
 
+import cv2
 import numpy as np
 
 from camera_pose_nodes.camera_model import CameraIntrinsics
@@ -279,11 +280,14 @@ class QuarterEstimator:
         self.extract_ms = 0.0
         t3 = time.thread_time()
 
+        stamp_before = self.ekf.stamp_ns
         self.ekf.predict(stamp_ns)
         has, X = self.landmarks.lookup(self.tracker.ids)
         n_inliers = 0
         if len(X):
             xy = self.intrinsics.undistort_points(self.tracker.pts[has])
+            if self.stereo is not None and stamp_before is not None:
+                self._relinearize(X, xy, (stamp_ns - stamp_before) * 1e-9)
             X_cov = (self.landmarks.covariances_of(self.tracker.ids[has])
                      if self.params.landmark_covariance else None)
             inl = self.ekf.update(X, xy, self.sigma_uv, self.T_base_cam, self.params.gate_chi2,
@@ -322,6 +326,32 @@ class QuarterEstimator:
             return uninformative(stamp_ns, self.ekf.T_odom_base, self.source, state, **kw)
         return PoseEstimate(stamp_ns, self.ekf.T_odom_base, cov,
                             source=self.source, state=state, **kw)
+
+    def _relinearize(self, X, xy, dt):
+        """Stereo rigs (metric landmarks from the first frame, often a car at speed): a
+        robust pose from this frame's landmarks (OpenCV PnP, RANSAC, from the prediction)
+        becomes the point the EKF update is linearized at (PoseEKF.relinearize)."""
+        if len(X) < max(6, self.params.min_inliers):
+            return
+        T_oc = self.ekf.T_odom_base @ self.T_base_cam
+        R_co = T_oc[:3, :3].T
+        rvec, _ = cv2.Rodrigues(R_co)
+        tvec = -R_co @ T_oc[:3, 3]
+        f = 0.5 * (self.intrinsics.fx + self.intrinsics.fy)
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            X.astype(np.float64), xy.astype(np.float64), np.eye(3), None,
+            rvec.copy(), tvec.reshape(3, 1).copy(), useExtrinsicGuess=True, iterationsCount=100,
+            reprojectionError=3.0 * self.params.pixel_sigma / f, confidence=0.99,
+            flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok or inl is None or len(inl) < max(6, self.params.min_inliers, len(X) // 2):
+            return
+        R_co, _ = cv2.Rodrigues(rvec)
+        T_oc_new = np.eye(4)
+        T_oc_new[:3, :3] = R_co.T
+        T_oc_new[:3, 3] = -R_co.T @ tvec.reshape(3)
+        T_ob = T_oc_new @ np.linalg.inv(self.T_base_cam)
+        if np.all(np.isfinite(T_ob)):
+            self.ekf.relinearize(T_ob, dt)
 
     def _remember_motion(self, stamp_ns, state):
         _, w, cov = self.ekf.twist
