@@ -43,7 +43,7 @@ PARAMETERS = {
     'lost_timeout_s': (2.0, 'without camera updates or wheel prior for this long, the state is lost', 0.1, 600.0),
     'arc_integration': (True, 'EKF prediction moves along the arc of the twist (constant body twist), not along the heading at the start of the step', None, None),
     'wheel_planar_only': (True, 'use only vx, vy, wz of the wheel twist (a wheeled base measures nothing else)', None, None),
-    'planar_motion': (True, 'the base moves on the rig\'s level floor (rig floor_z; robot_localization calls it two_d_mode): every frame measures its vz, wx, wy as 0', None, None),
+    'planar_motion': (True, 'the base moves on the rig\'s level floor (rig floor_z, not with floor_level false; robot_localization calls it two_d_mode): every frame measures its vz, wx, wy as 0', None, None),
     'planar_twist_std': (1e-3, 'std of that planar-motion measurement of vz (m/s), wx and wy (rad/s)', 1e-6, 10.0),
     'wheel_gate_chi2': (1e3, 'chi-square gate of the wheel twist against the EKF twist (slip detection)', 1.0, 1e9),
     'scale_direction_sigma_rad': (0.01, 'angular std of a camera translation direction fed to the rig-scale observer (rad)', 1e-5, 0.5),
@@ -183,7 +183,7 @@ class GeneralFusion:
         # was tried: it lags less in turns but spin_then_drive's scale went to -12 %).
         wheel_used = self._wheel_update(wheel_twist) if wheel_twist is not None else False
         self.wheel_seen = self.wheel_seen or wheel_twist is not None
-        if p['planar_motion'] and self.rig.floor_z is not None:
+        if p['planar_motion'] and self.rig.floor_z is not None and getattr(self.rig, 'floor_level', True):
             # Why: the cameras measure the body's climb and tilt as freely as its travel, and
             # with floor landmarks (ground_plane) a pitch error tilts the floor they are put on;
             # the two fed each other, 0.2 m of height drift over 9 m in spin_then_drive.

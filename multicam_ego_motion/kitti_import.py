@@ -6,7 +6,7 @@ camera's pose in the first left camera frame, 3x4 row-major, optical axes).
 
 Output rig: `left` and `right`, named as a stereo pair (stereo_pairs); base_link sits on the
 road below the left camera (KITTI's camera height, 1.65 m: the cameras at z = 1.65, floor_z
-= 0) with REP-103 axes (x forward = optical z), so the right camera is `baseline` metres
+= 0; floor_level false: the road climbs and tilts, so no planar-motion constraint) with REP-103 axes (x forward = optical z), so the right camera is `baseline` metres
 along -y. Ground truth is base_link in odom (odom = base_link at the first frame), twist in
 base_link from central differences. Frames are 0.1 s apart (KITTI is 10 Hz).
 """
@@ -128,7 +128,7 @@ def stereo_rig(baseline: float, height: float = CAMERA_HEIGHT_M) -> Rig:
                     np.array([0.0, 0.0, height]), R),
         CameraMount('right', '/right/image_raw', '/right/camera_info', 'right_optical',
                     np.array([0.0, -baseline, height]), R)],
-        floor_z=0.0, stereo_pairs=(('left', 'right'),))
+        floor_z=0.0, floor_level=False, stereo_pairs=(('left', 'right'),))
 
 
 def base_poses(camera_poses, T_base_left):

@@ -49,6 +49,10 @@ class Rig:
     # the floor, REP-105's base_footprint); None: no such floor (a car rig whose base_link is
     # at a tilted camera, a handheld rig). Floor landmarks and planar motion need it.
     floor_z: Optional[float] = None
+    # The floor is level everywhere (a building: the base never climbs or tilts, which the
+    # general arbiter's planar_motion assumes), or only locally flat (a road with slopes:
+    # floor landmarks still hold, planar motion does not).
+    floor_level: bool = True
     # Cameras whose fields of view overlap (a stereo pair), as (name, name): each one's
     # quarters match their tracks into the other's image and triangulate metric landmarks
     # from a single frame (camera_pose_nodes/stereo_match.py). Named in the rig file, or
@@ -76,6 +80,8 @@ class Rig:
         d = {'base_frame': self.base_frame}
         if self.floor_z is not None:
             d['floor_z'] = float(self.floor_z)
+            if not self.floor_level:
+                d['floor_level'] = False
         if self.stereo_pairs or not self.detect_stereo:
             d['stereo_pairs'] = [list(p) for p in self.stereo_pairs]
         d['cameras'] = [c.to_dict() for c in self.cameras]
@@ -87,7 +93,8 @@ class Rig:
             f.write('# Camera rig: extrinsics base_link -> <camera>_optical (REP-103/105).\n'
                     '# translation: camera centre in base_link (m); rotation_xyzw: the optical\n'
                     '# frame (z forward, x right, y down) expressed in base_link.\n'
-                    '# floor_z (optional): the level floor the base stands on, z in base_link.\n'
+                    '# floor_z (optional): the floor the base stands on, z in base_link;\n'
+                    '# floor_level (optional, default true): false for a road with slopes.\n'
                     '# stereo_pairs (optional): [[left, right], ...] cameras whose views overlap;\n'
                     '# without it, overlapping pairs are found from the extrinsics and intrinsics.\n'
                     '# Intrinsics come from each camera\'s CameraInfo.\n')
@@ -149,10 +156,13 @@ def parse_rig(data: dict, source: str = 'rig') -> Rig:
             floor_z = float('nan')
         if not np.isfinite(floor_z):
             raise UserError(f'{source}: floor_z must be a finite number (m), got {data["floor_z"]!r}')
+    floor_level = data.get('floor_level', True)
+    if not isinstance(floor_level, bool):
+        raise UserError(f'{source}: floor_level must be true or false, got {floor_level!r}')
     named = 'stereo_pairs' in data
     pairs = parse_stereo_pairs(data.get('stereo_pairs'), [c.name for c in cams], source) if named else ()
     return Rig(cameras=cams, base_frame=data.get('base_frame', 'base_link'), floor_z=floor_z,
-               stereo_pairs=pairs, detect_stereo=not named)
+               floor_level=floor_level, stereo_pairs=pairs, detect_stereo=not named)
 
 
 def parse_stereo_pairs(value, names, source: str = 'rig') -> Tuple[Tuple[str, str], ...]:
