@@ -218,3 +218,57 @@ def test_stereo_pair_lockstep_graph_equals_the_sequential_pipeline(stereo_bag, s
     for f, t in zip(seq.fused, T):
         assert np.array_equal(f.T_odom_base[:3, 3], t[:3, 3])
         assert np.allclose(f.T_odom_base[:3, :3], t[:3, :3], atol=1e-12, rtol=0)
+
+
+def test_stereo_pair_quarters_migrate_with_identical_odometry(stereo_bag, stereo_replay, tmp_path):
+    """--migrate-every 3: quarters of both cameras move between workers (their state carries
+    the partner's intrinsics and any partner image that came ahead of its frame) and the
+    odometry stays the same bit for bit."""
+    moved = replay(stereo_bag, tmp_path / 'moved', '--no-wheel', '--migrate-every', 3, timeout=600)
+    assert moved.returncode == 0, moved
+    import re
+    n = re.search(r'coordinator: (\d+) migrations', moved.stdout + moved.stderr)
+    assert n and int(n.group(1)) >= 10, moved.stdout[-2000:]
+    _, T0, _, _ = stereo_replay.odometry()
+    _, T1, _, _ = moved.odometry()
+    assert len(T1) == len(T0) and np.array_equal(T0, T1)
+
+
+def test_rig_floor_level_parses_and_is_checked(tmp_path):
+    d = rig_data(None)
+    d['floor_z'] = 0.0
+    d['floor_level'] = False
+    rig = parse_rig(d)
+    assert rig.floor_level is False
+    rig.save(tmp_path / 'road.yaml')
+    assert load_rig(tmp_path / 'road.yaml').floor_level is False
+    assert parse_rig(rig_data(None)).floor_level is True
+    d['floor_level'] = 'no'
+    with pytest.raises(UserError, match='floor_level must be true or false'):
+        parse_rig(d, 'road.yaml')
+
+
+def test_stereo_rig_starts_with_its_speed_open():
+    """The general arbiter's first camera fix on a stereo rig without a wheel leaves the
+    linear velocity open: a car already at 12 m/s is followed from the next frame."""
+    from arbiter_node.general_fusion import GeneralFusion
+    from camera_pose_nodes.pose_estimate import PoseEstimate
+    from multicam_ego_motion.geometry.se3 import make_T
+
+    def run(rig):
+        fusion = GeneralFusion(rig, {})
+        states = []
+        for k in range(6):
+            T = make_T(np.eye(3), [1.2 * k, 0.0, 0.0])
+            est = {n: PoseEstimate(k * 100_000_000, T, np.eye(6) * 1e-4, source=n, state='tracking')
+                   for n in rig.names}
+            if k == 0:
+                est = {}
+            states.append(fusion.process(k * 100_000_000, est).state)
+        return states, fusion.ekf.T[0, 3]
+    stereo = stereo_pair_rig(0.3)
+    states, x = run(stereo)
+    assert states[1:] == ['tracking'] * 5 and x == pytest.approx(6.0, abs=0.05)
+    from dataclasses import replace
+    states, _ = run(replace(stereo, stereo_pairs=()))      # at rest: the later frames gated out
+    assert 'dead_reckoning' in states
