@@ -272,3 +272,20 @@ def test_stereo_rig_starts_with_its_speed_open():
     from dataclasses import replace
     states, _ = run(replace(stereo, stereo_pairs=()))      # at rest: the later frames gated out
     assert 'dead_reckoning' in states
+
+
+def test_a_rig_without_named_pairs_gets_them_from_the_bag(stereo_bag, tmp_path):
+    """Named pairs win; without any, the overlapping pair is found from the extrinsics and the
+    bag's CameraInfos, and the nodes get a rig file that names it."""
+    from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
+    from multicam_ego_motion.replay import resolve_rig
+    data = yaml.safe_load((stereo_bag / 'rig.yaml').read_text())
+    data.pop('stereo_pairs')
+    (tmp_path / 'unnamed.yaml').write_text(yaml.safe_dump(data))
+    rig, path = resolve_rig(Rosbag2Reader(stereo_bag), str(tmp_path / 'unnamed.yaml'))
+    assert rig.stereo_pairs == (('left', 'right'),)
+    assert path != tmp_path / 'unnamed.yaml' and load_rig(path).stereo_pairs == (('left', 'right'),)
+    data['stereo_pairs'] = []                               # named as none
+    (tmp_path / 'none.yaml').write_text(yaml.safe_dump(data))
+    rig, path = resolve_rig(Rosbag2Reader(stereo_bag), str(tmp_path / 'none.yaml'))
+    assert rig.stereo_pairs == () and path == tmp_path / 'none.yaml'
