@@ -25,7 +25,7 @@ from camera_pose_nodes.landmark_map import LandmarkMap, bearings_odom, angle_deg
 from camera_pose_nodes.pose_ekf import PoseEKF
 from camera_pose_nodes.pose_estimate import PoseEstimate, UNINFORMATIVE_VARIANCE, uninformative
 from camera_pose_nodes.quarter_region import QuarterRegion
-from camera_pose_nodes.stereo_match import StereoConfig, StereoPair
+from camera_pose_nodes.stereo_match import StereoConfig, StereoPair, relative_pose
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.geometry.rig import CameraMount
 from multicam_ego_motion.geometry.se3 import rotvec_to_R
@@ -185,13 +185,12 @@ class QuarterEstimator:
         if not self.params.stereo:
             return
         p = self.params
-        base = StereoPair(self.T_base_cam, partner.T_base_cam, self.intrinsics, intrinsics,
-                          StereoConfig())
+        baseline = float(np.linalg.norm(relative_pose(self.T_base_cam, partner.T_base_cam)[1]))
         cfg = StereoConfig(window=p.klt_window, pyramid_levels=p.stereo_pyramid_levels,
                            iterations=p.klt_iterations, epsilon_px=p.klt_epsilon_px,
                            fb_px=p.stereo_fb_px, epipolar_px=p.stereo_epipolar_px,
                            pixel_sigma=p.stereo_pixel_sigma, min_depth=p.min_depth,
-                           max_depth=min(p.max_depth, p.stereo_max_range * base.baseline))
+                           max_depth=min(p.max_depth, p.stereo_max_range * baseline))
         self.stereo = StereoPair(self.T_base_cam, partner.T_base_cam, self.intrinsics, intrinsics, cfg)
         self.partner_size = (intrinsics.width, intrinsics.height)
 
