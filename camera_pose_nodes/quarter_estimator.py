@@ -30,7 +30,7 @@ from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.geometry.rig import CameraMount
 from multicam_ego_motion.geometry.se3 import rotvec_to_R
 
-STATE_VERSION = 6     # 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays; 6: motion
+STATE_VERSION = 7     # 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays; 6: motion; 7: stereo partner
 STAGES = ('acquire', 'extract', 'track', 'pose', 'structure')
 _ROTATION_ONLY_POSITION_VARIANCE = 1.0e2   # m^2: 'position not measured', still < UNINFORMATIVE
 _TRIANGULATION_VIEWS = 5     # views per DLT: oldest, newest and evenly spaced between
@@ -177,6 +177,7 @@ class QuarterEstimator:
                                      pixel_sigma=p.pixel_sigma)
         self.sigma_uv = (p.pixel_sigma / intrinsics.fx, p.pixel_sigma / intrinsics.fy)
         self.stereo = None          # StereoPair with the partner camera (set_partner)
+        self.partner = None         # (CameraMount, CameraIntrinsics) of that camera
         self.reset()
 
     def set_partner(self, partner: CameraMount, intrinsics: CameraIntrinsics):
@@ -184,6 +185,7 @@ class QuarterEstimator:
         intrinsics: from then on apply_fused_pose takes its image of the same stamp."""
         if not self.params.stereo:
             return
+        self.partner = (partner, intrinsics)
         p = self.params
         baseline = float(np.linalg.norm(relative_pose(self.T_base_cam, partner.T_base_cam)[1]))
         cfg = StereoConfig(window=p.klt_window, pyramid_levels=p.stereo_pyramid_levels,
@@ -666,7 +668,8 @@ class QuarterEstimator:
                 'landmarks': self.landmarks.get_state(),
                 'fused_poses': {k: v.copy() for k, v in self.fused_poses.items()},
                 'structure_ms': self.structure_ms, 'extract_ms': self.extract_ms,
-                'motion': None if self._motion is None else (self._motion[0], self._motion[1].copy())}
+                'motion': None if self._motion is None else (self._motion[0], self._motion[1].copy()),
+                'partner': self.partner}
 
     def set_state(self, s: dict):
         if s.get('version') != STATE_VERSION:
@@ -686,5 +689,8 @@ class QuarterEstimator:
         self.extract_ms = float(s['extract_ms'])
         m = s['motion']
         self._motion = None if m is None else (int(m[0]), np.array(m[1], float))
+        self.stereo, self.partner = None, None
+        if s['partner'] is not None:
+            self.set_partner(*s['partner'])
         self._prefetched = None
         self._extract_due = None

@@ -289,3 +289,48 @@ def test_a_rig_without_named_pairs_gets_them_from_the_bag(stereo_bag, tmp_path):
     (tmp_path / 'none.yaml').write_text(yaml.safe_dump(data))
     rig, path = resolve_rig(Rosbag2Reader(stereo_bag), str(tmp_path / 'none.yaml'))
     assert rig.stereo_pairs == () and path == tmp_path / 'none.yaml'
+
+
+def test_quarter_state_carries_its_stereo_partner(stereo_bag):
+    """get_state/set_state (migration, crash recovery) mid-run: the quarter continues with its
+    partner and the same stereo landmarks, bit for bit."""
+    import pickle
+    from camera_pose_nodes.camera_model import intrinsics_from_msg
+    from camera_pose_nodes.image_conversion import image_msg_to_gray
+    from camera_pose_nodes.quarter_estimator import QuarterEstimator, QuarterParams
+    from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
+    from multicam_ego_motion.ros_plumbing.pose_messages import pose_to_T, stamp_to_ns
+    rig = load_rig(stereo_bag / 'rig.yaml')
+    reader = Rosbag2Reader(stereo_bag)
+    info, frames, gt = {}, {}, {}
+    for topic, msg, _ in reader.decoded(['/left/camera_info', '/right/camera_info', '/left/image_raw',
+                                         '/right/image_raw', '/ground_truth/odom']):
+        if topic.endswith('camera_info'):
+            info.setdefault(topic.split('/')[1], intrinsics_from_msg(msg))
+        elif topic == '/ground_truth/odom':
+            gt[stamp_to_ns(msg.header.stamp)] = pose_to_T(msg.pose.pose)
+        else:
+            frames.setdefault(stamp_to_ns(msg.header.stamp), {})[topic.split('/')[1]] = image_msg_to_gray(msg)
+    stamps = sorted(frames)[:12]
+
+    def make():
+        q = QuarterEstimator(rig.camera('left'), 3, info['left'], QuarterParams(), floor_z=None)
+        q.set_partner(rig.camera('right'), info['right'])
+        return q
+
+    def step(q, t):
+        e = q.process_image(t, frames[t]['left'])
+        q.apply_fused_pose(t, gt[t], np.eye(6) * 1e-6, frames[t]['right'])
+        return e
+
+    a, b = make(), make()
+    ests_a = [step(a, t) for t in stamps]
+    for t in stamps[:6]:
+        step(b, t)
+    c = QuarterEstimator(rig.camera('left'), 3, info['left'], QuarterParams(), floor_z=None)
+    c.set_state(pickle.loads(pickle.dumps(b.get_state())))
+    assert c.wants_partner_image
+    ests_c = [step(c, t) for t in stamps[6:]]
+    assert all(e.n_landmarks > 10 for e in ests_a[2:])      # stereo landmarks from the start
+    for ea, ec in zip(ests_a[6:], ests_c):
+        assert np.array_equal(ea.T_odom_base, ec.T_odom_base) and ea.n_landmarks == ec.n_landmarks
