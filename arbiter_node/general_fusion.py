@@ -3,6 +3,10 @@
 Per frame: median filter across cameras (camera_median) -> covariance-weighted fusion of the
 inliers (quarter_fusion.information_fusion, correlation-inflated) -> BodyEKF update (gated).
 No informative camera: predict only, with the wheel-odometry twist prior when given.
+Free-running cameras: a frame's camera estimates may carry different stamps (within the
+general arbiter's sync window); each is moved to the frame's common time (the latest stamp)
+with the EKF's constant-twist motion model before the median (time_shift), and the fused
+pose is given back to each camera at its own stamp (pose_at).
 Scale: the rig-scale observer (rig_scale) is fed when per-camera translation directions are
 available and `scale_observed` reports it; until it is wired to correct anything, metric
 scale comes from the wheel prior (when configured) and from the landmarks.
@@ -16,6 +20,7 @@ from arbiter_node.body_ekf import BodyEKF, BodyEkfParams
 from arbiter_node.camera_median import median_filter
 from arbiter_node.covariance import condition_covariance
 from arbiter_node.quarter_fusion import CHI2_6DOF_999, information_fusion
+from arbiter_node.time_shift import shift_pose
 from arbiter_node.rig_scale import RigScaleResult, relative_motion, scale_correction, solve_rig_translation
 from camera_pose_nodes.pose_estimate import PoseEstimate
 from multicam_ego_motion.geometry.rig import Rig
@@ -127,11 +132,32 @@ class GeneralFusion:
         return {n: (replace(e, covariance=e.covariance + floor) if e.informative else e)
                 for n, e in estimates.items()}
 
+    def _to_common_time(self, stamp_ns: int, estimates: Mapping[str, PoseEstimate]) -> Dict[str, PoseEstimate]:
+        # A camera captured earlier than the frame's common time: its pose moved forward along
+        # the EKF's twist (already predicted to stamp_ns), its covariance grown by the twist's.
+        out = {}
+        twist, twist_cov = self.ekf.twist, self.ekf.twist_covariance
+        for n, e in estimates.items():
+            if e.stamp_ns != stamp_ns and e.informative:
+                T, C = shift_pose(e.T_odom_base, e.covariance, (stamp_ns - e.stamp_ns) * 1e-9, twist,
+                                  twist_cov, self.params['accel_noise'], self.params['angular_accel_noise'])
+                e = replace(e, stamp_ns=stamp_ns, T_odom_base=T, covariance=C)
+            out[n] = e
+        return out
+
+    def pose_at(self, fused: 'FusedEstimate', stamp_ns: int) -> Tuple[np.ndarray, np.ndarray]:
+        """The fused pose and covariance moved to `stamp_ns` (a camera's own capture time in
+        the frame) with the fused twist; at the fused stamp itself, exactly the fused pose."""
+        return shift_pose(fused.T_odom_base, fused.pose_covariance, (stamp_ns - fused.stamp_ns) * 1e-9,
+                          fused.twist, fused.twist_covariance, self.params['accel_noise'],
+                          self.params['angular_accel_noise'])
+
     # -------------------------------------------------------------- per frame
     def process(self, stamp_ns: int, camera_estimates: Mapping[str, PoseEstimate],
                 wheel_twist: Optional[Tuple[np.ndarray, np.ndarray]] = None,
                 camera_directions: Optional[Mapping[str, np.ndarray]] = None) -> FusedEstimate:
-        """One frame. wheel_twist = (twist 6, covariance 6x6) in base_link, or None.
+        """One frame at stamp_ns (its common time; a camera estimate stamped earlier is moved
+        to it). wheel_twist = (twist 6, covariance 6x6) in base_link, or None.
         camera_directions: optional per-camera translation directions since the last frame."""
         p = self.params
         if self.last_stamp_ns is not None:
@@ -140,7 +166,7 @@ class GeneralFusion:
         T_prev = self.last_T
 
         prior = (self.ekf.T, self.ekf.pose_covariance) if p['median_use_prior'] and self.has_tracked else None
-        camera_estimates = self._with_floor(camera_estimates)
+        camera_estimates = self._with_floor(self._to_common_time(stamp_ns, camera_estimates))
         med = median_filter(dict(camera_estimates), p['median_mahalanobis_gate'], p['median_max_translation_m'],
                             p['median_max_rotation_rad'], prior, p['median_prior_max_cameras'], p['median_weighted'])
         out_rejected = dict(med.rejected)

@@ -173,6 +173,8 @@ class QuarterNode(Node):
 
     def on_fused(self, msg: PoseWithCovarianceStamped):
         fused = decode_fused(msg)
+        if self.estimator is not None and not self.estimator.takes_feedback(fused.stamp_ns):
+            return                      # another camera's capture time (free-running cameras)
         self.last_fused_ns = fused.stamp_ns
         if self.estimator is not None:
             self.estimator.apply_fused_pose(fused.stamp_ns, fused.T_odom_base, fused.covariance)
