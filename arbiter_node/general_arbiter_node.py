@@ -144,7 +144,8 @@ class GeneralArbiterNode(Node):
             t0 = time.thread_time()
             # Rig order, not arrival order: float sums must not depend on the scheduler.
             items = {n: g.items[n] for n in self.rig.names if n in g.items}
-            fused = self.fusion.process(g.stamp_ns, items, wheel_twist=self.wheel.at(g.first_ns))
+            fused = self.fusion.process(g.stamp_ns, items, wheel_twist=self.wheel.at(g.first_ns),
+                                        wheel_stamp_ns=self.wheel.stamp_at(g.first_ns))
             ms = (time.thread_time() - t0) * 1e3
             if not (np.all(np.isfinite(fused.T_odom_base)) and is_valid_covariance(fused.pose_covariance)
                     and is_valid_covariance(fused.twist_covariance)):

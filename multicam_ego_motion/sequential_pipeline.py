@@ -91,7 +91,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             cams[name] = as_received(fuse_quarters(received, source=name), name)
             result.cameras[name].append(cams[name])
         first = min(frame_stamps.values())
-        fused = fusion.process(common, cams, wheel_twist=wheel.at(first))
+        fused = fusion.process(common, cams, wheel_twist=wheel.at(first), wheel_stamp_ns=wheel.stamp_at(first))
         for stamp in sorted(set(frame_stamps.values())):
             T, C = fusion.pose_at(fused, stamp)
             feedback = as_received(PoseEstimate(stamp, T, C, source='fused', state=fused.state), 'fused')
