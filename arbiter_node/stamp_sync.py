@@ -8,8 +8,10 @@ missed a release it was due for is marked absent and no longer waited for until 
 again; so a camera whose topics are missing costs one timeout, not one per frame.
 
 Due: a source's frame period is the shortest step between its stamps; a group that ends
-before the source's next frame can come (its last stamp plus most of its period) is not
-waited for. Cameras at different rates (30 and 15 Hz) then fill the groups of their own
+before the source's next frame can come (its stamp before the group plus most of its period)
+is not waited for. Nor is a group older than a stamp the source already reported (a source's
+stamps only grow: with two frames in flight, a 15 Hz camera's next frame can come while the
+30 Hz frame before it is still open). Cameras at different rates (30 and 15 Hz) then fill the groups of their own
 frames and no other. Until a source has two stamps its period is unknown: it is waited for,
 and a first miss does not mark it absent (it may be a slower camera, not a dead one).
 
@@ -21,6 +23,7 @@ from typing import Dict, List, Optional
 # A source is not due in a group that ends more than this share of its period before its
 # next expected stamp: frame-to-frame jitter of a free-running camera stays well below it.
 DUE_JITTER_SHARE = 0.125
+RECENT_STAMPS = 8
 
 
 @dataclass
@@ -67,6 +70,7 @@ class StampSynchronizer:
         self.last_stamp: Dict[str, int] = {}       # newest stamp per source
         self.period_ns: Dict[str, int] = {}        # shortest step between a source's stamps
         self.unknown_misses: Dict[str, int] = {}   # misses while the period was unknown
+        self.recent: Dict[str, List[int]] = {}     # a source's last RECENT_STAMPS stamps
 
     def add(self, source: str, stamp_ns: int, item, now: float) -> List[Group]:
         # Even a late estimate proves the source is alive: wait for it from the next frame on.
@@ -90,6 +94,8 @@ class StampSynchronizer:
                 self.period_ns[source] = int(step)
         if last is None or stamp_ns > last:
             self.last_stamp[source] = int(stamp_ns)
+            self.recent.setdefault(source, []).append(int(stamp_ns))
+            del self.recent[source][:-RECENT_STAMPS]
 
     def _group_for(self, source, stamp_ns, now) -> _Open:
         fits = []
@@ -114,14 +120,22 @@ class StampSynchronizer:
         """Whether the source can have a frame in the group (see the module docstring)."""
         if source in g.items:
             return True
-        period, last = self.period_ns.get(source), self.last_stamp.get(source)
-        if period is None or last is None or last >= g.lo:
+        period = self.period_ns.get(source)
+        prev = max((t for t in self.recent.get(source, ()) if t < g.lo), default=None)
+        if period is None or prev is None:
             return True
-        next_ns = last + period - DUE_JITTER_SHARE * period
-        return next_ns <= g.lo + self.window_ns
+        return prev + period - DUE_JITTER_SHARE * period <= g.lo + self.window_ns
+
+    def past(self, source: str, g: _Open) -> bool:
+        """The source reported a later frame already: it has nothing more for this group (a
+        source's stamps only grow), e.g. while lockstep has two frames in flight."""
+        return source not in g.items and self.last_stamp.get(source, -1) > g.lo + self.window_ns
+
+    def _waits_for(self, source: str, g: _Open) -> bool:
+        return source not in self.absent and self.due(source, g) and not self.past(source, g)
 
     def _complete(self, g: _Open) -> bool:
-        return all(s in g.items for s in self.expected() if self.due(s, g))
+        return all(s in g.items for s in self.sources if self._waits_for(s, g))
 
     def poll(self, now: float) -> List[Group]:
         out = []
@@ -134,6 +148,8 @@ class StampSynchronizer:
                 break
             missing = [s for s in self.sources if s not in g.items and self.due(s, g)]
             for s in missing:
+                if self.past(s, g):
+                    continue               # alive: it skipped this frame
                 if s in self.last_stamp and s not in self.period_ns:
                     # Reported once so far: maybe a slower camera; absent on its second miss.
                     self.unknown_misses[s] = self.unknown_misses.get(s, 0) + 1

@@ -68,9 +68,10 @@ def test_window_groups_stamps_a_few_ms_apart_in_any_order():
 def test_window_zero_keeps_identical_stamps_apart():
     s = StampSynchronizer(['a', 'b'], timeout_s=1.0)
     s.add('a', 10, 'A', now=0.0)
-    assert s.add('b', 11, 'B', now=0.1) == []            # 1 ns apart: two frames
-    g = s.poll(now=1.05)
-    assert [x.stamp_ns for x in g] == [10] and g[0].missing == ['b']
+    g = s.add('b', 11, 'B', now=0.1)        # 1 ns apart: two frames, and b is past frame 10
+    assert [x.stamp_ns for x in g] == [10] and g[0].missing == ['b'] and 'b' not in s.absent
+    g = s.poll(now=1.2)
+    assert [x.stamp_ns for x in g] == [11] and g[0].missing == ['a'] and g[0].timed_out
 
 
 def test_one_source_twice_in_the_window_starts_the_next_group():
@@ -119,3 +120,17 @@ def test_bad_window_is_refused():
     import pytest
     with pytest.raises(ValueError, match='window'):
         StampSynchronizer(['a'], 1.0, window_ns=-1)
+
+
+def test_group_a_source_has_moved_past_is_not_waited_for():
+    # Two frames in flight: b (15 Hz, period not known yet) reports its next frame while a's
+    # frame without b is open. b's stamps only grow, so that frame is released at once.
+    p = 33_333_333
+    s = StampSynchronizer(['a', 'b'], timeout_s=10.0, window_ns=5 * MS)
+    s.add('a', 0, 'a0', now=0.0)
+    assert len(s.add('b', 0, 'b0', now=0.0)) == 1
+    assert s.add('a', p, 'a1', now=0.1) == []             # b might still come for frame 1
+    g = s.add('b', 2 * p, 'b2', now=0.2)
+    assert [x.stamp_ns for x in g] == [p] and not g[0].timed_out and 'b' not in s.absent
+    g = s.add('a', 2 * p, 'a2', now=0.3)
+    assert g[0].items == {'a': 'a2', 'b': 'b2'} and not g[0].timed_out
