@@ -152,8 +152,9 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
     # Capture instants per camera (a synchronised rig: every camera at the wheel's times).
     captures = {}
     for cam, offset, r in zip(rig.cameras, offsets, rates):
+        # (as many frames as a synchronised camera: the last frame has every camera, a little
+        # after the end for a late one, where the trajectory holds its end pose)
         t_cam = offset + np.arange(int(round(duration * r)) + 1) / r
-        t_cam = t_cam[t_cam <= times[-1] + 1e-9]
         for t, stamp in zip(t_cam, STAMP_EPOCH_NS + np.round(t_cam * 1e9).astype(np.int64)):
             captures.setdefault(int(stamp), (t, []))[1].append(cam.name)
     for t, stamp in zip(times, wheel_stamps):
