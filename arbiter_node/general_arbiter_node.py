@@ -48,6 +48,7 @@ NODE_PARAMETERS = {
     'use_wheel_odometry': (True, 'fuse /wheel/odom as a body-twist prior when it is published', None, None),
     'wheel_odometry_topic': ('/wheel/odom', 'wheel odometry (nav_msgs/Odometry)', None, None),
     'sync_timeout_s': (0.5, 'longest wait for all cameras of one frame', 0.0, 60.0),
+    'sync_window_s': (0.0, 'free-running cameras: estimates whose stamps lie within this of one another are one frame, fused at its latest stamp (each moved there with the EKF\'s twist); 0 = identical stamps only (hardware-synchronised rig). Above the rig\'s capture spread, below half a frame period; a lockstep player must group frames by the same window', 0.0, 1.0),
     'wheel_wait_s': (0.5, 'then the longest wait for the wheel reading of that frame (while a wheel publisher is connected)', 0.0, 60.0),
     'path_max_poses': (5000, 'poses kept on /ego_motion/path (oldest dropped)', 1, 1000000),
     'path_min_spacing_m': (0.05, '/ego_motion/path keeps a pose every this many metres', 0.0, 100.0),
@@ -67,7 +68,8 @@ class GeneralArbiterNode(Node):
         self.rig = load_rig(p['rig_file'])
         self.p = p
         self.fusion = GeneralFusion(self.rig, fusion_params)
-        self.sync = StampSynchronizer(self.rig.names, p['sync_timeout_s'])
+        self.sync = StampSynchronizer(self.rig.names, p['sync_timeout_s'],
+                                      window_ns=int(round(p['sync_window_s'] * 1e9)))
         self.wheel = WheelBuffer()
         self.path = PathHistory(p['path_min_spacing_m'], p['path_min_turn_rad'], p['path_max_poses'],
                                 p['path_publish_period_s'])
@@ -134,13 +136,16 @@ class GeneralArbiterNode(Node):
     def fuse_held(self):
         while self.held:
             g, since = self.held[0]
-            if not self.wheel_settled(g.stamp_ns) and time.monotonic() - since < self.p['wheel_wait_s']:
+            # The wheel reading at the frame's first capture (free-running cameras: the wheel
+            # ticks with the frame clock, and a later reading only comes with the next frame).
+            if not self.wheel_settled(g.first_ns) and time.monotonic() - since < self.p['wheel_wait_s']:
                 return
             self.held.pop(0)
             t0 = time.thread_time()
             # Rig order, not arrival order: float sums must not depend on the scheduler.
             items = {n: g.items[n] for n in self.rig.names if n in g.items}
-            fused = self.fusion.process(g.stamp_ns, items, wheel_twist=self.wheel.at(g.stamp_ns))
+            fused = self.fusion.process(g.stamp_ns, items, wheel_twist=self.wheel.at(g.first_ns),
+                                        wheel_stamp_ns=self.wheel.stamp_at(g.first_ns))
             ms = (time.thread_time() - t0) * 1e3
             if not (np.all(np.isfinite(fused.T_odom_base)) and is_valid_covariance(fused.pose_covariance)
                     and is_valid_covariance(fused.twist_covariance)):
@@ -189,9 +194,12 @@ class GeneralArbiterNode(Node):
     def publish(self, fused, group, ms):
         stamp = ns_to_stamp(fused.stamp_ns)
         odom_frame, base_frame = self.p['odom_frame'], self.p['base_frame']
-        self.pub_fused.publish(estimate_to_msg(PoseEstimate(
-            fused.stamp_ns, fused.T_odom_base, fused.pose_covariance, source='fused',
-            state=fused.state), odom_frame))
+        # One feedback per distinct camera stamp (free-running cameras), oldest first: each
+        # quarter triangulates from the fused pose at its own camera's capture time.
+        for s in feedback_stamps(group, fused.stamp_ns):
+            T, C = self.fusion.pose_at(fused, s)
+            self.pub_fused.publish(estimate_to_msg(PoseEstimate(
+                s, T, C, source='fused', state=fused.state), odom_frame))
         odom = Odometry()
         odom.header.stamp = stamp
         odom.header.frame_id = odom_frame
@@ -219,7 +227,14 @@ class GeneralArbiterNode(Node):
             'ego_motion/general_arbiter', level, '; '.join(parts),
             {'state': fused.state, 'scale_observed': fused.scale_observed,
              'cameras_used': ','.join(fused.cameras_used), 'cameras_missing': ','.join(missing),
-             'frame_stride': self.governor.stride, 'arbiter_ms': ms}), self.diag_sink, self.pub_diag)
+             'frame_stride': self.governor.stride, 'arbiter_ms': ms,
+             'sync_timed_out': group.timed_out}), self.diag_sink, self.pub_diag)
+
+
+def feedback_stamps(group, fused_stamp_ns):
+    """The stamps the fused pose is fed back at: every camera's own stamp in the group, in
+    order (the fused stamp, the latest, last)."""
+    return sorted(set(group.stamps.values()) | {fused_stamp_ns})
 
 
 def main(args=None):

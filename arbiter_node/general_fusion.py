@@ -3,6 +3,10 @@
 Per frame: median filter across cameras (camera_median) -> covariance-weighted fusion of the
 inliers (quarter_fusion.information_fusion, correlation-inflated) -> BodyEKF update (gated).
 No informative camera: predict only, with the wheel-odometry twist prior when given.
+Free-running cameras: a frame's camera estimates may carry different stamps (within the
+general arbiter's sync window); each is moved to the frame's common time (the latest stamp)
+with the EKF's constant-twist motion model before the median (time_shift), and the fused
+pose is given back to each camera at its own stamp (pose_at).
 Scale: the rig-scale observer (rig_scale) is fed when per-camera translation directions are
 available and `scale_observed` reports it; until it is wired to correct anything, metric
 scale comes from the wheel prior (when configured) and from the landmarks.
@@ -16,6 +20,7 @@ from arbiter_node.body_ekf import BodyEKF, BodyEkfParams
 from arbiter_node.camera_median import median_filter
 from arbiter_node.covariance import condition_covariance
 from arbiter_node.quarter_fusion import CHI2_6DOF_999, information_fusion
+from arbiter_node.time_shift import shift_pose
 from arbiter_node.rig_scale import RigScaleResult, relative_motion, scale_correction, solve_rig_translation
 from camera_pose_nodes.pose_estimate import PoseEstimate
 from multicam_ego_motion.geometry.rig import Rig
@@ -72,6 +77,9 @@ class FusedEstimate:
     cameras_rejected: Dict[str, str] = field(default_factory=dict)
     cameras_missing: List[str] = field(default_factory=list)     # in the rig, no estimate or uninformative
     ekf_d2: Optional[float] = None         # Mahalanobis^2 of the fused camera pose vs prediction
+    # the twist (and covariance) early cameras were moved to stamp_ns with (free-running cameras)
+    shift_twist: Optional[np.ndarray] = None
+    shift_twist_covariance: Optional[np.ndarray] = None
 
 
 class GeneralFusion:
@@ -129,20 +137,64 @@ class GeneralFusion:
         return {n: (replace(e, covariance=e.covariance + floor) if e.informative else e)
                 for n, e in estimates.items()}
 
+    def _to_common_time(self, stamp_ns: int, estimates: Mapping[str, PoseEstimate],
+                        twist: np.ndarray, twist_cov: np.ndarray) -> Dict[str, PoseEstimate]:
+        # A camera captured earlier than the frame's common time: its pose moved forward along
+        # the EKF's twist (predicted to stamp_ns), its covariance grown by the twist's.
+        out = {}
+        for n, e in estimates.items():
+            if e.stamp_ns != stamp_ns and e.informative:
+                T, C = shift_pose(e.T_odom_base, e.covariance, (stamp_ns - e.stamp_ns) * 1e-9, twist,
+                                  twist_cov, self.params['accel_noise'], self.params['angular_accel_noise'])
+                e = replace(e, stamp_ns=stamp_ns, T_odom_base=T, covariance=C)
+            out[n] = e
+        return out
+
+    def pose_at(self, fused: 'FusedEstimate', stamp_ns: int) -> Tuple[np.ndarray, np.ndarray]:
+        """The fused pose and covariance moved to `stamp_ns` (a camera's own capture time in
+        the frame); at the fused stamp itself, exactly the fused pose.
+
+        Moved back with the twist the cameras were moved forward with, not the updated one: a
+        camera that agrees with the fusion then gets its own pose back, whatever the twist's
+        error. With the updated twist, the difference (the twist's correction times the
+        offset) went into every camera's landmarks, frame after frame: under acceleration the
+        odometry fell behind by centimetres a second."""
+        twist = fused.shift_twist if fused.shift_twist is not None else fused.twist
+        twist_cov = fused.shift_twist_covariance if fused.shift_twist is not None else fused.twist_covariance
+        return shift_pose(fused.T_odom_base, fused.pose_covariance, (stamp_ns - fused.stamp_ns) * 1e-9,
+                          twist, twist_cov, self.params['accel_noise'], self.params['angular_accel_noise'])
+
     # -------------------------------------------------------------- per frame
     def process(self, stamp_ns: int, camera_estimates: Mapping[str, PoseEstimate],
                 wheel_twist: Optional[Tuple[np.ndarray, np.ndarray]] = None,
-                camera_directions: Optional[Mapping[str, np.ndarray]] = None) -> FusedEstimate:
-        """One frame. wheel_twist = (twist 6, covariance 6x6) in base_link, or None.
-        camera_directions: optional per-camera translation directions since the last frame."""
+                camera_directions: Optional[Mapping[str, np.ndarray]] = None,
+                wheel_stamp_ns: Optional[int] = None) -> FusedEstimate:
+        """One frame at stamp_ns (its common time; a camera estimate stamped earlier is moved
+        to it). wheel_twist = (twist 6, covariance 6x6) in base_link, or None.
+        camera_directions: optional per-camera translation directions since the last frame.
+        wheel_stamp_ns: the wheel reading's stamp; one between the last frame and this one
+        (free-running cameras: the wheel ticks with the frame's first capture) is applied
+        at its own time, before the cameras."""
         p = self.params
-        if self.last_stamp_ns is not None:
+        wheel_used = False
+        free_running = any(e.stamp_ns != stamp_ns for e in camera_estimates.values())
+        wheel_first = (free_running and wheel_twist is not None and wheel_stamp_ns is not None
+                       and self.last_stamp_ns is not None
+                       and self.last_stamp_ns < wheel_stamp_ns < stamp_ns)
+        if wheel_first:
+            # Why: applied at the frame's latest stamp, a wheel speed 24 ms old under 1.5 m/s^2
+            # slowed every prediction, and the fused poses fed back carried it into the maps.
+            self.ekf.predict((wheel_stamp_ns - self.last_stamp_ns) * 1e-9)
+            wheel_used = self._wheel_update(wheel_twist)
+            self.ekf.predict((stamp_ns - wheel_stamp_ns) * 1e-9)
+        elif self.last_stamp_ns is not None:
             self.ekf.predict((stamp_ns - self.last_stamp_ns) * 1e-9)   # dt <= 0 is a no-op
         self.last_stamp_ns = stamp_ns if self.last_stamp_ns is None else max(stamp_ns, self.last_stamp_ns)
         T_prev = self.last_T
 
         prior = (self.ekf.T, self.ekf.pose_covariance) if p['median_use_prior'] and self.has_tracked else None
-        camera_estimates = self._with_floor(camera_estimates)
+        shift_twist = (self.ekf.twist, self.ekf.twist_covariance)
+        camera_estimates = self._with_floor(self._to_common_time(stamp_ns, camera_estimates, *shift_twist))
         med = median_filter(dict(camera_estimates), p['median_mahalanobis_gate'], p['median_max_translation_m'],
                             p['median_max_rotation_rad'], prior, p['median_prior_max_cameras'], p['median_weighted'])
         out_rejected = dict(med.rejected)
@@ -181,7 +233,8 @@ class GeneralFusion:
 
         # The wheel twist after the camera update (applying it at mid-step, trapezoidally,
         # was tried: it lags less in turns but spin_then_drive's scale went to -12 %).
-        wheel_used = self._wheel_update(wheel_twist) if wheel_twist is not None else False
+        if wheel_twist is not None and not wheel_first:
+            wheel_used = self._wheel_update(wheel_twist)
         self.wheel_seen = self.wheel_seen or wheel_twist is not None
         if p['planar_motion'] and self.rig.floor_z is not None and getattr(self.rig, 'floor_level', True):
             # Why: the cameras measure the body's climb and tilt as freely as its travel, and
@@ -218,4 +271,5 @@ class GeneralFusion:
             twist=self.ekf.twist, twist_covariance=self.ekf.twist_covariance, state=state,
             scale_observed=bool(rig_observed or wheel_used), scale_source=scale_source,
             scale_ratio=scale_ratio, cameras_used=used, cameras_rejected=out_rejected,
-            cameras_missing=missing, ekf_d2=d2)
+            cameras_missing=missing, ekf_d2=d2, shift_twist=shift_twist[0],
+            shift_twist_covariance=shift_twist[1])

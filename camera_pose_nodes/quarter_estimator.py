@@ -30,7 +30,10 @@ from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.geometry.rig import CameraMount
 from multicam_ego_motion.geometry.se3 import rotvec_to_R
 
-STATE_VERSION = 7     # 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays; 6: motion; 7: stereo partner
+# Fused poses come back at the stamps a quarter tracked, within a feedback timeout or so.
+OWN_STAMPS_KEPT = 32
+
+STATE_VERSION = 8     # 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays; 6: motion; 7: stereo partner; 8: own stamps
 STAGES = ('acquire', 'extract', 'track', 'pose', 'structure')
 _ROTATION_ONLY_POSITION_VARIANCE = 1.0e2   # m^2: 'position not measured', still < UNINFORMATIVE
 _TRIANGULATION_VIEWS = 5     # views per DLT: oldest, newest and evenly spaced between
@@ -213,6 +216,13 @@ class QuarterEstimator:
         # Kept as it was then, so a flow computed early (prefetch) or late is the same.
         self._motion = None
         self._extract_due = None   # stamp whose new features are still to be extracted
+        self.own_stamps = []       # the last OWN_STAMPS_KEPT stamps this quarter tracked
+
+    def takes_feedback(self, stamp_ns: int) -> bool:
+        """Whether a fused pose at `stamp_ns` is this quarter's: one of its own frames (or
+        any, before the first). Free-running cameras: the general arbiter feeds the fused pose
+        back at every camera's stamp; another camera's carries nothing to triangulate here."""
+        return not self.own_stamps or int(stamp_ns) in self.own_stamps
 
     def close(self):
         self.tracker.close()
@@ -269,6 +279,7 @@ class QuarterEstimator:
 
         # (the rotation steers the search only when the flow is computed now)
         self.tracker.track(stamp_ns, crop, flow, None if flow is not None else self._flow_predictor(stamp_ns))
+        self.own_stamps = self.own_stamps[-(OWN_STAMPS_KEPT - 1):] + [int(stamp_ns)]
         t2 = time.thread_time()
         ms['track'] += (t2 - t1) * 1e3
 
@@ -669,7 +680,7 @@ class QuarterEstimator:
                 'fused_poses': {k: v.copy() for k, v in self.fused_poses.items()},
                 'structure_ms': self.structure_ms, 'extract_ms': self.extract_ms,
                 'motion': None if self._motion is None else (self._motion[0], self._motion[1].copy()),
-                'partner': self.partner}
+                'partner': self.partner, 'own_stamps': list(self.own_stamps)}
 
     def set_state(self, s: dict):
         if s.get('version') != STATE_VERSION:
@@ -685,6 +696,7 @@ class QuarterEstimator:
         self.landmarks.set_state(s['landmarks'])
         self.fused_poses = {int(k): np.array(v, float) for k, v in s['fused_poses'].items()}
         self._fused_cache = None
+        self.own_stamps = [int(v) for v in s['own_stamps']]
         self.structure_ms = float(s['structure_ms'])
         self.extract_ms = float(s['extract_ms'])
         m = s['motion']

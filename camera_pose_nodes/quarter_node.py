@@ -221,6 +221,8 @@ class QuarterNode(Node):
         self.pending = deque(kept)
 
     def on_fused(self, msg: PoseWithCovarianceStamped):
+        if self.estimator is not None and not self.estimator.takes_feedback(stamp_to_ns(msg.header.stamp)):
+            return                      # another camera's capture time (free-running cameras)
         if self.partner is not None and self.estimator is not None:
             # Stereo: applied with the partner's image of the same frame (apply_held), as
             # the sequential pipeline does, whichever of the two arrives first
@@ -261,6 +263,8 @@ class QuarterNode(Node):
 
     def apply_fused(self, msg: PoseWithCovarianceStamped, partner_gray):
         fused = decode_fused(msg)
+        if self.estimator is not None and not self.estimator.takes_feedback(fused.stamp_ns):
+            return                      # another camera's capture time (free-running cameras)
         self.last_fused_ns = fused.stamp_ns
         if self.estimator is not None:
             self.estimator.apply_fused_pose(fused.stamp_ns, fused.T_odom_base, fused.covariance,

@@ -38,6 +38,10 @@ def configure_parser(p):
                         'the odometry is the same for any N)')
     p.add_argument('--migrate-every', type=int, default=0, metavar='K',
                    help='debug (lockstep): move one quarter node to the next worker every K frames')
+    p.add_argument('--sync-window', type=float, default=None, metavar='S',
+                   help='free-running cameras: images within S seconds are one frame, fused at '
+                        'its latest stamp (the general arbiter\'s sync_window_s, and the lockstep '
+                        'player\'s frames; default: the params file\'s value)')
     p.add_argument('--debug-images', action='store_true',
                    help='draw the tracker (the nodes\' debug_images parameter) and record each '
                         'camera\'s /<cam>/tracks: features, flow, landmark/epipolar status')
@@ -116,7 +120,8 @@ LOCKSTEP_SYNC_TIMEOUT_S = 10.0
 LOCKSTEP_DEPTH = 2
 
 
-def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False):
+def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False,
+                    sync_window_s=None):
     # Lockstep replay waits for everything (deterministic); rate mode must keep going.
     wait = 60.0 if lockstep else 0.3
     general = {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2,
@@ -127,6 +132,8 @@ def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False)
                'use_sim_time': not lockstep}
     if lockstep:
         general['max_lag_s'] = 0.0
+    if sync_window_s is not None:     # (left out when not given: the params file's value stands)
+        general['sync_window_s'] = float(sync_window_s)
     overrides = {'quarter': {'image_qos': 'reliable' if lockstep else 'sensor_data',
                              'feedback_timeout_s': wait},
                  'camera_arbiter': {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2},
@@ -242,7 +249,8 @@ def _killing(coordinator, at_frame):
 def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rate=1.0,
               use_wheel=True, ack_timeout=120.0, start_offset=0.0, duration=None,
               migrate_every=0, rebalance=True, logger=print, record_topics=None,
-              lockstep_depth=LOCKSTEP_DEPTH, debug_images=False, kill_worker_at=None) -> GraphRun:
+              lockstep_depth=LOCKSTEP_DEPTH, debug_images=False, kill_worker_at=None,
+              sync_window_s=None) -> GraphRun:
     """Coordinator + in-process player and recorder: one run of the graph over a bag.
     kill_worker_at (lockstep; the bench's crash row): SIGKILL the last worker once this many
     frames were acknowledged, as a crash would."""
@@ -260,9 +268,14 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
     from multicam_ego_motion.ros_plumbing.qos import RELIABLE
     from nav_msgs.msg import Odometry
 
+    from multicam_ego_motion.params_file import sync_window_from
+
     reader = Rosbag2Reader(bag)
+    # The player's lockstep frames must be the general arbiter's groups.
+    window = sync_window_from(params) if sync_window_s is None else float(sync_window_s)
     coordinator = Coordinator(rig, Path(rig_file).resolve(), Path(params).resolve(), workers=workers,
-                              overrides=graph_overrides(lockstep, use_wheel, debug_images), log_dir=out / 'logs',
+                              overrides=graph_overrides(lockstep, use_wheel, debug_images, sync_window_s),
+                              log_dir=out / 'logs',
                               rebalance=rebalance, migrate_every=migrate_every, logger=logger)
     # No rclpy signal handlers: on Ctrl-C they invalidate the context under the spinning
     # thread. SIGINT, SIGTERM and SIGHUP raise interrupt.Interrupted here (the command line
@@ -314,7 +327,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
         recorder.wait_for_topics(10.0)
         player = BagPlayer(bag, PlayOptions(
             lockstep=lockstep, lockstep_depth=lockstep_depth, rate=rate, ack_topic='/odom',
-            ack_timeout_s=ack_timeout, discovery_s=0.5, progress=None,
+            ack_timeout_s=ack_timeout, discovery_s=0.5, progress=None, sync_window_s=window,
             start_offset_s=start_offset, duration_s=duration,
             between_frames=(coordinator.between_frames if kill_worker_at is None
                             else _killing(coordinator, kill_worker_at)) if lockstep else None,
@@ -395,7 +408,7 @@ def run(args) -> int:
                   start_offset=args.start_offset, duration=args.duration,
                   migrate_every=args.migrate_every, rebalance=not args.no_rebalance,
                   logger=lambda t: print(t, flush=True), lockstep_depth=args.lockstep_depth,
-                  debug_images=args.debug_images)
+                  debug_images=args.debug_images, sync_window_s=args.sync_window)
     st = g.coordinator.stats
     print(f'coordinator: {st.migrations} migrations ({st.rebalances} rebalances), '
           f'{st.restarts} worker restarts'
