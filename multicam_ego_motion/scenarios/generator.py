@@ -128,12 +128,18 @@ def parse_camera_list(text, cameras: int, option: str):
 
 
 def camera_timing(cameras: int, rate: float, offsets_ms=None, rates=None):
-    """(offsets s, rates Hz) per camera, checked: a rate within 1..120 Hz, an offset within
-    [0, its camera's frame period)."""
+    """(offsets s, rates Hz) per camera, checked: a per-camera rate within 1..120 Hz (the
+    frame rate itself is checked by the CLI; the library renders sparse stills too), an
+    offset within [0, its camera's frame period)."""
+    for option, values in (('--camera-offsets-ms', offsets_ms), ('--camera-rates', rates)):
+        if values is not None and len(values) != cameras:
+            raise UserError(f'{option} has {len(values)} value(s) but the rig has {cameras} cameras '
+                            '(one value per camera, in rig order)')
+    given = rates is not None
     rates = [float(rate)] * cameras if rates is None else [float(r) for r in rates]
     offsets_ms = [0.0] * cameras if offsets_ms is None else [float(o) for o in offsets_ms]
     for k, r in enumerate(rates):
-        if not 1 <= r <= 120:
+        if given and not 1 <= r <= 120:
             raise UserError(f'--camera-rates: camera {k} rate must be between 1 and 120 Hz, got {r:g}')
     for k, (o, r) in enumerate(zip(offsets_ms, rates)):
         if not 0 <= o < 1000.0 / r:
