@@ -86,8 +86,11 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
         fused = fusion.process(frame_stamp, cams, wheel_twist=wheel.at(frame_stamp))
         feedback = as_received(PoseEstimate(frame_stamp, fused.T_odom_base, fused.pose_covariance,
                                             source='fused', state=fused.state), 'fused')
+        command = fusion.map_scale_command     # (as the quarters get it: latched, in time)
         for qs in estimators.values():
             for q in qs:
+                if command is not None:
+                    q.rescale_command(command)
                 q.apply_fused_pose(frame_stamp, feedback.T_odom_base, feedback.covariance)
         result.fused.append(fused)
         result.frame_ms.append((time.perf_counter() - t0) * 1e3)
