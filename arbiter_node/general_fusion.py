@@ -53,10 +53,11 @@ PARAMETERS = {
     'scale_max_relative_std': (0.1, 'rig-scale observer: trust t only when its predicted relative error is below this', 1e-3, 1.0),
     'start_min_cameras': (2, 'without stereo, floor or wheel: the first fix needs this many cameras that agree (two-view initialisation)', 1, 64),
     'scale_unknown_relative_std': (1.0, 'without stereo, floor or wheel: the map scale\'s relative std before the rig has turned (scale_state; /odom\'s position covariance carries it)', 1e-3, 100.0),
-    'scale_window_rotation_rad': (0.25, 'scale_state: a rig-rotation scale observation spans this much body rotation (windows do not overlap)', 0.02, 3.0),
+    'scale_window_rotation_rad': (0.5, 'scale_state: a rig-rotation scale observation spans this much body rotation (windows do not overlap)', 0.02, 3.0),
     'scale_window_max_s': (4.0, 'scale_state: ... within at most this long', 0.1, 60.0),
-    'scale_snap_relative_std': (0.05, 'scale_state: the map is rescaled once the scale\'s relative std is below this', 1e-4, 1.0),
+    'scale_snap_relative_std': (0.1, 'scale_state: the map is rescaled once the scale\'s relative std is below this', 1e-4, 1.0),
     'scale_snap_min_change': (0.01, 'scale_state: after the first rescale, rescale again when the scale moved this much (relative)', 0.0, 1.0),
+    'scale_drift_per_sqrt_s': (0.01, 'scale_state: relative scale drift of a map without a scale source per sqrt(s) (the scale estimate\'s random walk)', 0.0, 1.0),
     'scale_snap_about': ('origin', 'scale_state: rescale the map about the odom origin (`origin`: past and future odometry at one scale, a jump now) or the current pose (`current`: no jump, a kink)', None, None),
 }
 

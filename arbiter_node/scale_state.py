@@ -13,7 +13,9 @@ frames over which the body turned `scale_window_rotation_rad` gives an observati
 std as the observation's std). Once P is small enough the map is rescaled (the "snap"): a
 MapScaleCommand multiplies every position by k, from the next frame, in the general arbiter
 and in every quarter (camera_pose_nodes/map_scale), and x returns to 0 with P kept. Later
-turns keep tightening P and snap again when the factor has moved `scale_snap_min_change`.
+turns keep tightening P and snap again when the factor has moved `scale_snap_min_change` (and one std); the map's own
+scale drift (`scale_drift_per_sqrt_s`) keeps P from shrinking to nothing, so later turns
+still correct it.
 
 /odom's position covariance carries the scale's uncertainty: P p p^T added for the position
 p (about the rescale centre), so it is as large as the distance travelled along the travel
@@ -93,6 +95,9 @@ class ScaleState:
         """Record this frame (fused pose; informative cameras' body poses) and, when the body
         turned enough since the window's start, observe the scale over that window."""
         p = self.p
+        if self.observed and self.history:
+            # the map's own scale drifts (monocular): the estimate must follow it
+            self.P += p['scale_drift_per_sqrt_s'] ** 2 * max(0.0, (stamp_ns - self.history[-1][0]) * 1e-9)
         centres = {}
         for cam in self.rig.cameras:
             T = cameras.get(cam.name)
@@ -141,7 +146,7 @@ class ScaleState:
         p = self.p
         if not self.observed or self.pending is not None or self.relative_std > p['scale_snap_relative_std']:
             return None
-        if self.epoch > 0 and abs(self.x) < max(p['scale_snap_min_change'], 2.0 * self.relative_std):
+        if self.epoch > 0 and abs(self.x) < max(p['scale_snap_min_change'], self.relative_std):
             return None
         centre = (0.0, 0.0, 0.0) if p['scale_snap_about'] == 'origin' else tuple(float(v) for v in T_now[:3, 3])
         self.epoch += 1
