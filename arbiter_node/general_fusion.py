@@ -52,6 +52,7 @@ PARAMETERS = {
     'scale_min_rotation_rad': (0.02, 'rig-scale observer: below this body rotation scale is unobservable (rad)', 1e-4, 1.0),
     'scale_max_relative_std': (0.1, 'rig-scale observer: trust t only when its predicted relative error is below this', 1e-3, 1.0),
     'start_min_cameras': (2, 'without stereo, floor or wheel: the first fix needs this many cameras that agree (two-view initialisation)', 1, 64),
+    'rig_rotation_scale': (True, 'without stereo, floor or wheel: measure the map scale from the rig\'s rotation (rig_scale over windows of frames) and rescale the map (scale_state)', None, None),
     'scale_unknown_relative_std': (1.0, 'without stereo, floor or wheel: the map scale\'s relative std before the rig has turned (scale_state; /odom\'s position covariance carries it)', 1e-3, 100.0),
     'scale_window_rotation_rad': (0.5, 'scale_state: a rig-rotation scale observation spans this much body rotation (windows do not overlap)', 0.02, 3.0),
     'scale_window_max_s': (4.0, 'scale_state: ... within at most this long', 0.1, 60.0),
@@ -252,7 +253,7 @@ class GeneralFusion:
                 T = T.copy()
                 T[:3, 3] = scale_positions(T[:3, 3], c.factor, c.centre)
                 camera_poses[n] = T
-        if camera_update:
+        if camera_update and self.params['rig_rotation_scale']:
             sc.observe(stamp_ns, self.ekf.T, camera_poses)
             sc.decide(stamp_ns, self.ekf.T)
         fixed_by = 'rig rotation' if sc.observed else 'none'
