@@ -54,7 +54,7 @@ PARAMETERS = {
     'start_min_cameras': (2, 'without stereo, floor or wheel: the first fix needs this many cameras that agree (two-view initialisation)', 1, 64),
     'rig_rotation_scale': (True, 'without stereo, floor or wheel: measure the map scale from the rig\'s rotation (rig_scale over windows of frames) and rescale the map (scale_state)', None, None),
     'scale_unknown_relative_std': (1.0, 'without stereo, floor or wheel: the map scale\'s relative std before the rig has turned (scale_state; /odom\'s position covariance carries it)', 1e-3, 100.0),
-    'scale_window_rotation_rad': (0.5, 'scale_state: a rig-rotation scale observation spans this much body rotation (windows do not overlap)', 0.02, 3.0),
+    'scale_window_rotation_rad': (1.0, 'scale_state: a rig-rotation scale observation spans this much body rotation (windows do not overlap)', 0.02, 3.0),
     'scale_window_max_s': (4.0, 'scale_state: ... within at most this long', 0.1, 60.0),
     'scale_snap_relative_std': (0.1, 'scale_state: the map is rescaled once the scale\'s relative std is below this', 1e-4, 1.0),
     'scale_snap_min_change': (0.01, 'scale_state: after the first rescale, rescale again when the scale moved this much (relative)', 0.0, 1.0),

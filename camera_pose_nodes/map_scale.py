@@ -101,6 +101,8 @@ def two_view_init(q, stamp_ns: int) -> int:
     if len(rows) < p.two_view_min_points:
         return 0
     fs, fT, _, _ = q._fused_arrays()
+    if q._two_view_ref not in q.fused_poses:
+        q._two_view_ref = None        # its tracks are gone: start over from a shared view
     ht = tr.hist_t[rows]
     earlier = np.arange(tr.cfg.max_history)[None, :] < (tr.hist_n[rows] - 1)[:, None]
     for slot, s in enumerate(fs.tolist()):
