@@ -45,12 +45,13 @@ PARAMETERS = {
     'lost_timeout_s': (2.0, 'without camera updates or wheel prior for this long, the state is lost', 0.1, 600.0),
     'arc_integration': (True, 'EKF prediction moves along the arc of the twist (constant body twist), not along the heading at the start of the step', None, None),
     'wheel_planar_only': (True, 'use only vx, vy, wz of the wheel twist (a wheeled base measures nothing else)', None, None),
-    'planar_motion': (True, 'the base moves on the rig\'s level floor (rig floor_z; robot_localization calls it two_d_mode): every frame measures its vz, wx, wy as 0', None, None),
+    'planar_motion': (True, 'the base moves on the rig\'s level floor (rig floor_z, not with floor_level false; robot_localization calls it two_d_mode): every frame measures its vz, wx, wy as 0', None, None),
     'planar_twist_std': (1e-3, 'std of that planar-motion measurement of vz (m/s), wx and wy (rad/s)', 1e-6, 10.0),
     'wheel_gate_chi2': (1e3, 'chi-square gate of the wheel twist against the EKF twist (slip detection)', 1.0, 1e9),
     'scale_direction_sigma_rad': (0.01, 'angular std of a camera translation direction fed to the rig-scale observer (rad)', 1e-5, 0.5),
     'scale_min_rotation_rad': (0.02, 'rig-scale observer: below this body rotation scale is unobservable (rad)', 1e-4, 1.0),
     'scale_max_relative_std': (0.1, 'rig-scale observer: trust t only when its predicted relative error is below this', 1e-3, 1.0),
+    'stereo_start_speed_std': (20.0, 'rig with a stereo pair (stereo_pairs) and no wheel yet: linear velocity std at the first camera fix (m/s); such a rig measures metric motion from the first frame and may start at speed (a car), where the at-rest start gated out every later frame', 1e-3, 1000.0),
     'start_min_cameras': (2, 'without stereo, floor or wheel: the first fix needs this many cameras that agree (two-view initialisation)', 1, 64),
     'rig_rotation_scale': (True, 'without stereo, floor or wheel: measure the map scale from the rig\'s rotation (rig_scale over windows of frames) and rescale the map (scale_state)', None, None),
     'scale_unknown_relative_std': (1.0, 'without stereo, floor or wheel: the map scale\'s relative std before the rig has turned (scale_state; /odom\'s position covariance carries it)', 1e-3, 100.0),
@@ -107,6 +108,7 @@ class GeneralFusion:
         self.last_support_ns: Optional[int] = None     # last camera update or wheel prior
         self.has_tracked = False
         self.rejections = 0
+        self.wheel_seen = False
         self.last_T: np.ndarray = np.eye(4)
         self.last_scale: Optional[RigScaleResult] = None
         self.wheel_seen = False
@@ -176,7 +178,11 @@ class GeneralFusion:
             cov_f = condition_covariance(cov_f * (1.0 + (len(ests) - 1) * p['camera_correlation']))
             if not self.has_tracked:
                 # first camera fix: the cameras define the pose (odom origin was the start)
-                self.ekf.reinitialize(T_f, cov_f)
+                twist_cov = None
+                if getattr(self.rig, 'stereo_pairs', ()) and not self.wheel_seen and wheel_twist is None:
+                    twist_cov = np.diag([p['stereo_start_speed_std'] ** 2] * 3
+                                        + [p['initial_twist_std'] ** 2] * 3)
+                self.ekf.reinitialize(T_f, cov_f, twist_cov=twist_cov)
                 camera_update, d2 = True, 0.0
             else:
                 camera_update, d2 = self.ekf.update_pose(T_f, cov_f, p['ekf_gate_chi2'])
@@ -197,7 +203,8 @@ class GeneralFusion:
         # The wheel twist after the camera update (applying it at mid-step, trapezoidally,
         # was tried: it lags less in turns but spin_then_drive's scale went to -12 %).
         wheel_used = self._wheel_update(wheel_twist) if wheel_twist is not None else False
-        if p['planar_motion'] and self.rig.floor_z is not None:
+        self.wheel_seen = self.wheel_seen or wheel_twist is not None
+        if p['planar_motion'] and self.rig.floor_z is not None and getattr(self.rig, 'floor_level', True):
             # Why: the cameras measure the body's climb and tilt as freely as its travel, and
             # with floor landmarks (ground_plane) a pitch error tilts the floor they are put on;
             # the two fed each other, 0.2 m of height drift over 9 m in spin_then_drive.

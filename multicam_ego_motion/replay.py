@@ -47,11 +47,48 @@ def resolve_rig(bag_reader, rig_arg):
     from multicam_ego_motion.bag.rig_from_tf import rig_from_bag
     from multicam_ego_motion.geometry.rig import load_rig
     if rig_arg:
-        return load_rig(rig_arg), Path(rig_arg)
-    beside = Path(bag_reader.path) / 'rig.yaml'
-    if beside.exists():
-        return load_rig(beside), beside
-    return rig_from_bag(bag_reader), None
+        rig, path = load_rig(rig_arg), Path(rig_arg)
+    elif (Path(bag_reader.path) / 'rig.yaml').exists():
+        path = Path(bag_reader.path) / 'rig.yaml'
+        rig = load_rig(path)
+    else:
+        rig, path = rig_from_bag(bag_reader), None
+    return with_detected_stereo_pairs(bag_reader, rig, path)
+
+
+def with_detected_stereo_pairs(bag_reader, rig, path):
+    """A rig that names no stereo_pairs gets those found from its extrinsics and the bag's
+    first CameraInfo of each camera (stereo_match.overlapping_pairs); the nodes read the rig
+    file, so a rig that gained pairs is written to a new file (returned with it)."""
+    import tempfile
+    from dataclasses import replace
+
+    from camera_pose_nodes.camera_model import intrinsics_from_msg
+    from camera_pose_nodes.stereo_match import overlapping_pairs
+    if not rig.detect_stereo or rig.stereo_pairs or len(rig.cameras) < 2:
+        return rig, path
+    topics = {c.camera_info_topic: c.name for c in rig.cameras if c.camera_info_topic in bag_reader.topics}
+    intrinsics = {}
+    for topic, msg, _ in bag_reader.decoded(list(topics)):
+        name = topics[topic]
+        if name not in intrinsics:
+            try:
+                intrinsics[name] = intrinsics_from_msg(msg, name)
+            except (UserError, ValueError):
+                continue      # the quarter reports a bad CameraInfo
+        if len(intrinsics) == len(topics):
+            break
+    pairs = overlapping_pairs(rig, intrinsics)
+    if not pairs:
+        return rig, path
+    rig = replace(rig, stereo_pairs=pairs)
+    print(f'rig: overlapping cameras found: stereo pairs {", ".join("/".join(p) for p in pairs)} '
+          '(name stereo_pairs in the rig file to choose)', flush=True)
+    if path is None:
+        return rig, None
+    out = Path(tempfile.mkdtemp(prefix='ego_motion_rig_')) / 'rig.yaml'
+    rig.save(out)
+    return rig, out
 
 
 CAMERA_TOPIC_TYPES = (('image_topic', 'sensor_msgs/msg/Image'),

@@ -55,6 +55,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
     by_topic = {c.image_topic: c for c in present}
     info_topic = {c.camera_info_topic: c for c in present}
     estimators = {}   # camera name -> [QuarterEstimator x4]
+    intrinsics = {}   # camera name -> its first CameraInfo's intrinsics
     result = SequentialResult()
     frame = {}        # camera name -> image message of the current stamp
     frame_stamp = None
@@ -87,11 +88,27 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
         feedback = as_received(PoseEstimate(frame_stamp, fused.T_odom_base, fused.pose_covariance,
                                             source='fused', state=fused.state), 'fused')
         command = fusion.map_scale_command     # (as the quarters get it: latched, in time)
-        for qs in estimators.values():
+        partner_gray = {}
+        for name, qs in estimators.items():
+            # Stereo pairs: as a quarter node, once the partner's CameraInfo is known, the
+            # fused pose is applied with the partner's image of the same stamp (the node
+            # holds the fused pose until that image is there; absent from the bag: without)
+            partners = rig.stereo_partners(name)
+            partner = next((b for b in partners if b in intrinsics), None) if qp.stereo else None
+            gray_b = None
+            if partner is not None:
+                if not qs[0].wants_partner_image:
+                    for q in qs:
+                        q.set_partner(rig.camera(partner), intrinsics[partner])
+                if partner in frame:
+                    if partner not in partner_gray:
+                        size = (intrinsics[partner].width, intrinsics[partner].height)
+                        partner_gray[partner] = image_msg_to_gray(frame[partner], expected_size=size)
+                    gray_b = partner_gray[partner]
             for q in qs:
                 if command is not None:
                     q.rescale_command(command)
-                q.apply_fused_pose(frame_stamp, feedback.T_odom_base, feedback.covariance)
+                q.apply_fused_pose(frame_stamp, feedback.T_odom_base, feedback.covariance, gray_b)
         result.fused.append(fused)
         result.frame_ms.append((time.perf_counter() - t0) * 1e3)
         frame.clear()
@@ -106,6 +123,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             cam = info_topic[topic]
             if cam.name not in estimators:
                 intr = intrinsics_from_msg(msg, cam.name)
+                intrinsics[cam.name] = intr
                 estimators[cam.name] = [QuarterEstimator(cam, q, intr, qp, (msg.width, msg.height), rig.floor_z)
                                         for q in quarters]
             continue

@@ -27,12 +27,13 @@ import time
 
 import rclpy
 import rclpy.signals
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor, TimeoutException
+from rclpy.executors import ExternalShutdownException
 from rclpy.parameter import Parameter
 
 from multicam_ego_motion.coordinator import control
 from multicam_ego_motion.coordinator.idle_gc import IdleCollector
 from multicam_ego_motion.errors import UserError
+from multicam_ego_motion.ros_plumbing.lean_executor import LeanExecutor
 from multicam_ego_motion.ros_plumbing.lean_node import strip_event_handlers
 
 PR_SET_PDEATHSIG = 1
@@ -65,10 +66,9 @@ def node_class(kind: str):
 
 
 def create_node(spec: dict, params_file: str = None, **kwargs):
-    """The node of a spec, lean: rclpy's SingleThreadedExecutor rebuilds its wait set over
-    every entity of every node of the worker before each callback, and each rclpy node
-    brings seven services of its own (six parameter services and get_type_description):
-    with 21 nodes those were most of the entities walked ~160 times a frame. Parameters
+    """The node of a spec, lean: each rclpy node brings seven services of its own (six
+    parameter services and get_type_description), and with 21 nodes those were most of the
+    entities an executor's wait set holds. Parameters
     still come from the params file and the overrides; they are only not served."""
     cli_args = ['--ros-args', '--params-file', params_file] if params_file else None
     overrides = [Parameter(k, value=v) for k, v in spec['parameters'].items()]
@@ -111,7 +111,9 @@ class Worker:
             f'ego_motion_worker_{index}' if index >= 0 else f'ego_motion_worker_spare_{os.getpid()}',
             namespace=namespace or '/', start_parameter_services=False,
             parameter_overrides=[Parameter('start_type_description_service', value=False)])
-        self.executor = SingleThreadedExecutor()
+        # LeanExecutor: rclpy's executor rebuilt the wait set in Python before every wait
+        # and woke once more after every callback (lean_executor.py).
+        self.executor = LeanExecutor()
         self.executor.add_node(self.node)
         # The reader thread only queues; nodes are created and destroyed in the executor.
         self.wake = self.node.create_guard_condition(self.serve)
@@ -349,17 +351,15 @@ class Worker:
         self.defer(getattr(node, 'idle', lambda: True), done, DETACH_IDLE_TIMEOUT_S)
 
     def _spin(self):
-        """The executor's spin, plus idle work: one item whenever a look at the wait set
+        """The executor's loop, plus idle work: one item whenever a look at the wait set
         finds nothing ready, then garbage collection (idle_gc)."""
         ex = self.executor
-        looked = False          # the last non-blocking wait yielded callbacks
+        looked = False          # the last non-blocking wait found callbacks
         while True:
-            try:
-                handler, _, _ = ex.wait_for_ready_callbacks(
-                    timeout_sec=0.0 if self.idle_work or self.gc.due() else None)
-            except TimeoutException:
-                # A non-blocking wait also ends in a timeout after yielding what was ready:
-                # only a wait that found nothing means idle.
+            ready = ex.wait_ready(0.0 if self.idle_work or self.gc.due() else None)
+            if not ready:
+                # Only a wait that found nothing right after one that found something is
+                # not idle yet: what those callbacks produced may be ready now.
                 if looked:
                     looked = False
                 elif self.idle_work:
@@ -369,10 +369,8 @@ class Worker:
                 continue
             looked = True
             self.gc.collect_if_overdue()
-            handler()
-            if handler.exception() is not None:
-                raise handler.exception()
-            handler.result()
+            for call in ready:
+                call()
 
     def spin(self):
         threading.Thread(target=self.read_commands, daemon=True).start()

@@ -39,6 +39,11 @@ def configure_parser(p):
     p.add_argument('--k1', type=float, default=0.0, help='radial distortion (plumb_bob k1)')
     p.add_argument('--cameras', type=int, default=4,
                    help='1..8 level cameras, evenly spaced headings; 4 = the paper rig')
+    p.add_argument('--rig', choices=('ring', 'stereo'), default='ring',
+                   help='ring: --cameras level cameras at evenly spaced headings (default); '
+                        'stereo: a forward-looking stereo pair left/right, named in stereo_pairs')
+    p.add_argument('--baseline', type=float, default=0.3,
+                   help='--rig stereo: distance between the two cameras (m, default 0.3)')
     p.add_argument('--rig-out', default=None, help='also write the rig YAML here')
     p.add_argument('--compression', choices=('zstd', 'lz4', 'none'), default='zstd')
 
@@ -58,6 +63,17 @@ def evenly_spaced_rig(n: int, radius: float = 0.25) -> Rig:
                                 np.array([radius * np.cos(yaw), radius * np.sin(yaw), CAMERA_HEIGHT]),
                                 optical_rotation(yaw)))
     return Rig(cameras=cams, floor_z=0.0)     # the renderer's floor is base_link's z = 0
+
+
+def stereo_pair_rig(baseline: float) -> Rig:
+    """Two level cameras looking forward, `baseline` apart (left at +y), base_link midway
+    between them on the floor; named as a stereo pair."""
+    if not 0.01 <= baseline <= 5.0:
+        raise UserError(f'--baseline must be within 0.01..5 m, got {baseline}')
+    cams = [CameraMount(name, f'/{name}/image_raw', f'/{name}/camera_info', f'{name}_optical',
+                        np.array([0.0, y, CAMERA_HEIGHT]), optical_rotation(0.0))
+            for name, y in (('left', 0.5 * baseline), ('right', -0.5 * baseline))]
+    return Rig(cameras=cams, floor_z=0.0, stereo_pairs=(('left', 'right'),))
 
 
 def check_output_free(path: Path):
@@ -88,11 +104,14 @@ def pose_matrix(x, y, yaw):
 
 
 def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=480, fx=None,
-             k1=0.0, cameras=4, rig_out=None, compression='zstd', progress=True):
+             k1=0.0, cameras=4, rig_out=None, compression='zstd', progress=True,
+             rig_kind='ring', baseline=0.3):
     """Render the bag; returns a summary dict (frames, seconds, bag size)."""
     out = Path(out)
     check_output_free(out)
-    rig = evenly_spaced_rig(cameras)
+    if rig_kind not in ('ring', 'stereo'):
+        raise UserError(f'unknown rig {rig_kind!r} (ring or stereo)')
+    rig = stereo_pair_rig(baseline) if rig_kind == 'stereo' else evenly_spaced_rig(cameras)
     intr = CameraIntrinsics.default(width, height, k1)
     if fx is not None:
         intr = CameraIntrinsics(width, height, fx, fx, intr.cx, intr.cy, intr.distortion)
@@ -147,7 +166,7 @@ def run(args) -> int:
     validate(args)
     summary = generate(args.scenario, args.out, args.seed, args.duration, args.rate, args.width,
                        args.height, args.fx, args.k1, args.cameras, args.rig_out,
-                       args.compression)
+                       args.compression, rig_kind=args.rig, baseline=args.baseline)
     print(f'{args.out}: {summary["frames"]} frames x {len(summary["cameras"])} cameras '
           f'({", ".join(summary["cameras"])}), path {summary["path_length"]:.1f} m, '
           f'rendered and written in {summary["seconds"]:.1f} s ({summary["fps"]:.1f} frames/s), '
