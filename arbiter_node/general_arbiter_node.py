@@ -78,6 +78,9 @@ class GeneralArbiterNode(Node):
         self.governor = FrameGovernor(p['max_lag_s'])
         # Latched: a quarter that starts or moves later still gets the schedule in force.
         self.pub_schedule = self.create_publisher(Int64MultiArray, '/ego_motion/frame_schedule', LATCHED)
+        # Latched too: map rescales (map_scale), each applied from a given frame on.
+        self.pub_map_scale = self.create_publisher(Int64MultiArray, '/ego_motion/map_scale', LATCHED)
+        self.map_scale_epoch = 0
         self.pub_fused = self.create_publisher(PoseWithCovarianceStamped, '/ego_motion/fused_pose', RELIABLE)
         self.pub_odom = self.create_publisher(Odometry, '/odom', RELIABLE)
         self.pub_tf = self.create_publisher(TFMessage, '/tf', RELIABLE)
@@ -152,6 +155,7 @@ class GeneralArbiterNode(Node):
                 self.get_logger().error(f'fused estimate at {g.stamp_ns} is not finite/PD: not published')
                 continue
             self.govern(g.stamp_ns)
+            self.publish_map_scale()
             self.publish(fused, g, ms)
             if self.on_frame_done is not None:
                 self.on_frame_done(self)
@@ -173,6 +177,15 @@ class GeneralArbiterNode(Node):
                 f'behind the cameras: processing one frame in {schedule.stride} from '
                 f'{schedule.from_ns / 1e9:.3f} s' if schedule.stride > 1 else
                 f'caught up: processing every frame from {schedule.from_ns / 1e9:.3f} s')
+
+    def publish_map_scale(self):
+        """A new map rescale, before the fused pose (it applies from the next frame on)."""
+        command = self.fusion.map_scale_command
+        if command is not None and command.epoch != self.map_scale_epoch:
+            self.map_scale_epoch = command.epoch
+            self.pub_map_scale.publish(Int64MultiArray(data=command.to_list()))
+            self.get_logger().info(f'map rescaled by {command.factor:.4f} from '
+                                   f'{command.from_ns / 1e9:.3f} s (scale source: rig rotation)')
 
     # --- hand-over between workers (coordinator) ------------------------------------------
     def idle(self) -> bool:
@@ -205,7 +218,8 @@ class GeneralArbiterNode(Node):
         odom.header.frame_id = odom_frame
         odom.child_frame_id = base_frame
         fill_pose(odom.pose.pose, fused.T_odom_base)
-        odom.pose.covariance = covariance_field(fused.pose_covariance)
+        odom.pose.covariance = covariance_field(fused.odom_covariance if fused.odom_covariance is not None
+                                                else fused.pose_covariance)
         t = odom.twist.twist
         t.linear.x, t.linear.y, t.linear.z, t.angular.x, t.angular.y, t.angular.z = (
             float(v) for v in fused.twist)
@@ -226,6 +240,8 @@ class GeneralArbiterNode(Node):
         diagnostics.emit(stamp, diagnostics.status(
             'ego_motion/general_arbiter', level, '; '.join(parts),
             {'state': fused.state, 'scale_observed': fused.scale_observed,
+             'scale_source': fused.scale_fixed_by,
+             'scale_relative_std': round(float(fused.scale_relative_std), 6),
              'cameras_used': ','.join(fused.cameras_used), 'cameras_missing': ','.join(missing),
              'frame_stride': self.governor.stride, 'arbiter_ms': ms,
              'sync_timed_out': group.timed_out}), self.diag_sink, self.pub_diag)

@@ -22,6 +22,8 @@ from arbiter_node.covariance import condition_covariance
 from arbiter_node.quarter_fusion import CHI2_6DOF_999, information_fusion
 from arbiter_node.time_shift import shift_pose
 from arbiter_node.rig_scale import RigScaleResult, relative_motion, scale_correction, solve_rig_translation
+from arbiter_node.scale_state import ScaleState, metric_source
+from camera_pose_nodes.map_scale import scale_positions
 from camera_pose_nodes.pose_estimate import PoseEstimate
 from multicam_ego_motion.geometry.rig import Rig
 
@@ -55,6 +57,15 @@ PARAMETERS = {
     'scale_min_rotation_rad': (0.02, 'rig-scale observer: below this body rotation scale is unobservable (rad)', 1e-4, 1.0),
     'scale_max_relative_std': (0.1, 'rig-scale observer: trust t only when its predicted relative error is below this', 1e-3, 1.0),
     'stereo_start_speed_std': (20.0, 'rig with a stereo pair (stereo_pairs) and no wheel yet: linear velocity std at the first camera fix (m/s); such a rig measures metric motion from the first frame and may start at speed (a car), where the at-rest start gated out every later frame', 1e-3, 1000.0),
+    'start_min_cameras': (2, 'without stereo, floor or wheel: the first fix needs this many cameras that agree (two-view initialisation)', 1, 64),
+    'rig_rotation_scale': (True, 'without stereo, floor or wheel: measure the map scale from the rig\'s rotation (rig_scale over windows of frames) and rescale the map (scale_state)', None, None),
+    'scale_unknown_relative_std': (1.0, 'without stereo, floor or wheel: the map scale\'s relative std before the rig has turned (scale_state; /odom\'s position covariance carries it)', 1e-3, 100.0),
+    'scale_window_rotation_rad': (1.0, 'scale_state: a rig-rotation scale observation spans this much body rotation (windows do not overlap)', 0.02, 3.0),
+    'scale_window_max_s': (4.0, 'scale_state: ... within at most this long', 0.1, 60.0),
+    'scale_snap_relative_std': (0.1, 'scale_state: the map is rescaled once the scale\'s relative std is below this', 1e-4, 1.0),
+    'scale_snap_min_change': (0.01, 'scale_state: after the first rescale, rescale again when the scale moved this much (relative)', 0.0, 1.0),
+    'scale_drift_per_sqrt_s': (0.01, 'scale_state: relative scale drift of a map without a scale source per sqrt(s) (the scale estimate\'s random walk)', 0.0, 1.0),
+    'scale_snap_about': ('origin', 'scale_state: rescale the map about the odom origin (`origin`: past and future odometry at one scale, a jump now) or the current pose (`current`: no jump, a kink)', None, None),
 }
 
 
@@ -73,6 +84,9 @@ class FusedEstimate:
     scale_observed: bool = False
     scale_source: str = 'landmarks'        # 'rig' | 'wheel' | 'landmarks' | 'none'
     scale_ratio: Optional[float] = None    # rig-observed / estimated translation (diagnostic)
+    scale_fixed_by: str = 'none'           # scale_state.SOURCES
+    scale_relative_std: float = 0.0        # the map scale's relative std (scale_state)
+    odom_covariance: Optional[np.ndarray] = None   # /odom's: pose_covariance + the scale's share
     cameras_used: List[str] = field(default_factory=list)
     cameras_rejected: Dict[str, str] = field(default_factory=dict)
     cameras_missing: List[str] = field(default_factory=list)     # in the rig, no estimate or uninformative
@@ -105,6 +119,8 @@ class GeneralFusion:
         self.wheel_seen = False
         self.last_T: np.ndarray = np.eye(4)
         self.last_scale: Optional[RigScaleResult] = None
+        self.wheel_seen = False
+        self.scale = ScaleState(self.rig, self.params)
 
     # -------------------------------------------------------------- scale hook
     def observe_scale(self, T_prev: np.ndarray, T_now: np.ndarray,
@@ -202,7 +218,12 @@ class GeneralFusion:
         used: List[str] = []
         d2 = None
         camera_update = False
-        if med.inliers:
+        # Without a scale source the first fix comes from the quarters' two-view geometry,
+        # whose direction of travel one quarter alone can get wrong (a narrow view confuses
+        # sideways travel with a turn): the rig starts once enough cameras agree.
+        start_ok = (self.has_tracked or len(med.inliers) >= p['start_min_cameras']
+                    or metric_source(self.rig, self.wheel_seen or wheel_twist is not None) is not None)
+        if med.inliers and start_ok:
             names = sorted(med.inliers)
             ests = [med.inliers[n] for n in names]
             T_f, cov_f = information_fusion([e.T_odom_base for e in ests], [e.covariance for e in ests], med.T_median)
@@ -255,6 +276,8 @@ class GeneralFusion:
         else:
             state = 'lost'
 
+        fixed_by, scale_std, odom_cov = self._scale_step(stamp_ns, wheel_used, camera_update,
+                                                         {n: med.inliers[n].T_odom_base for n in used})
         T_now = self.ekf.T
         scale_ratio = None
         scale_source = 'wheel' if wheel_used else ('landmarks' if self.has_tracked else 'none')
@@ -272,4 +295,32 @@ class GeneralFusion:
             scale_observed=bool(rig_observed or wheel_used), scale_source=scale_source,
             scale_ratio=scale_ratio, cameras_used=used, cameras_rejected=out_rejected,
             cameras_missing=missing, ekf_d2=d2, shift_twist=shift_twist[0],
-            shift_twist_covariance=shift_twist[1])
+            shift_twist_covariance=shift_twist[1], scale_fixed_by=fixed_by,
+            scale_relative_std=scale_std,
+            odom_covariance=self.ekf.pose_covariance if odom_cov is None else odom_cov)
+
+    def _scale_step(self, stamp_ns, wheel_used, camera_update, camera_poses):
+        """scale_state's part of a frame: (source, relative std, /odom covariance or None).
+        Nothing here touches the estimate while stereo, floor or wheel fix the scale."""
+        self.wheel_seen = self.wheel_seen or wheel_used
+        other = metric_source(self.rig, self.wheel_seen)
+        if other is not None:
+            return other, 0.0, None
+        sc = self.scale
+        c = sc.pending
+        if sc.apply_pending(stamp_ns, self.ekf, self):
+            # this frame's cameras were measured before the quarters rescaled
+            for n, T in camera_poses.items():
+                T = T.copy()
+                T[:3, 3] = scale_positions(T[:3, 3], c.factor, c.centre)
+                camera_poses[n] = T
+        if camera_update and self.params['rig_rotation_scale']:
+            sc.observe(stamp_ns, self.ekf.T, camera_poses)
+            sc.decide(stamp_ns, self.ekf.T)
+        fixed_by = 'rig rotation' if sc.observed else 'none'
+        return fixed_by, sc.relative_std, sc.odom_covariance(self.ekf.T, self.ekf.pose_covariance)
+
+    @property
+    def map_scale_command(self):
+        """The latest map rescale (camera_pose_nodes/map_scale), None before any."""
+        return self.scale.command

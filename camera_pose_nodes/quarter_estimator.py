@@ -26,6 +26,7 @@ from camera_pose_nodes.pose_ekf import PoseEKF
 from camera_pose_nodes.pose_estimate import PoseEstimate, UNINFORMATIVE_VARIANCE, uninformative
 from camera_pose_nodes.quarter_region import QuarterRegion
 from camera_pose_nodes.stereo_match import StereoConfig, StereoPair, relative_pose
+from camera_pose_nodes import map_scale
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.geometry.rig import CameraMount
 from multicam_ego_motion.geometry.se3 import rotvec_to_R
@@ -33,7 +34,7 @@ from multicam_ego_motion.geometry.se3 import rotvec_to_R
 # Fused poses come back at the stamps a quarter tracked, within a feedback timeout or so.
 OWN_STAMPS_KEPT = 32
 
-STATE_VERSION = 8     # 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays; 6: motion; 7: stereo partner; 8: own stamps
+STATE_VERSION = 9     # 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays; 6: motion; 7: stereo partner; 8: map scale; 9: own stamps
 STAGES = ('acquire', 'extract', 'track', 'pose', 'structure')
 _ROTATION_ONLY_POSITION_VARIANCE = 1.0e2   # m^2: 'position not measured', still < UNINFORMATIVE
 _TRIANGULATION_VIEWS = 5     # views per DLT: oldest, newest and evenly spaced between
@@ -101,6 +102,10 @@ PARAMETERS = {
     'max_depth': (200.0, 'farthest accepted landmark depth (m)', 1.0, 1e5),
     'ground_plane': (True, 'put landmarks that lie on the floor onto it: their depth is then metric from the camera height (see ground_plane; needs the rig\'s floor_z)', None, None),
     'ground_tolerance': (0.3, 'a floor landmark\'s depth is never farther than this fraction from its ray\'s floor intersection', 0.001, 1.0),
+    'two_view_init': (True, 'without landmarks, floor or any motion of the fused poses, initialise from two-view geometry on the tracks (essential matrix): rotation and direction of travel, the length from two_view_nominal_speed (see two_view)', None, None),
+    'two_view_min_points': (12, 'RANSAC inliers a two-view initialisation needs', 5, 1000),
+    'two_view_parallax_deg': (1.0, 'median rotation-compensated ray angle a two-view initialisation needs (deg)', 0.05, 45.0),
+    'two_view_nominal_speed': (1.0, 'the gauge of a map without a scale source: the camera moved this fast between the two views (m/s); the general arbiter rescales once a source measures the scale', 1e-3, 100.0),
     'ground_map_scale_std': (0.03, 'relative scale uncertainty of the fused poses, allowed for when judging a landmark on the floor', 0.0, 1.0),
     'stereo': (True, "with a camera whose view overlaps this one (rig stereo_pairs): match the tracks without a landmark into its image of the same stamp and triangulate them from the baseline, metric from one frame (stereo_match); no partner: no effect", None, None),
     'stereo_pyramid_levels': (4, 'Lucas-Kanade pyramid levels of the search into the partner image (disparities up to ~10 x 2^levels px)', 0, 6),
@@ -217,6 +222,9 @@ class QuarterEstimator:
         self._motion = None
         self._extract_due = None   # stamp whose new features are still to be extracted
         self.own_stamps = []       # the last OWN_STAMPS_KEPT stamps this quarter tracked
+        self.scale_epoch = 0         # map rescales applied (map_scale)
+        self._two_view_ref = None    # stamp of the view a two-view initialisation started from
+        self._scale_pending = []     # map-scale commands waiting for their frame
 
     def takes_feedback(self, stamp_ns: int) -> bool:
         """Whether a fused pose at `stamp_ns` is this quarter's: one of its own frames (or
@@ -306,6 +314,9 @@ class QuarterEstimator:
                                   self.params.min_depth, X_cov)
             n_inliers = int(inl.sum())
         n_epipolar = self._epipolar_update(stamp_ns, ~has) if self.params.epipolar else 0
+        n_two_view = 0
+        if n_inliers < self.params.min_inliers and self._two_view_due():
+            n_two_view = map_scale.two_view_init(self, stamp_ns)
         if not self.ekf.healthy():
             # Cannot happen by construction (guards in the EKF); if it does, restart the
             # filter from the last fused pose rather than publish NaN.
@@ -319,6 +330,9 @@ class QuarterEstimator:
         cov = self.ekf.pose_covariance
         if n_inliers >= self.params.min_inliers:
             state = 'tracking'
+        elif n_two_view:
+            state = 'tracking'     # pose and covariance from the two views (map_scale)
+            n_inliers, n_epipolar = n_two_view, 0
         elif n_epipolar >= self.params.min_inliers:
             # Epipolar lines fix rotation and the direction of travel, never the distance: the
             # position is the prediction, so report it as unknown and only the rotation counts.
@@ -364,6 +378,27 @@ class QuarterEstimator:
         T_ob = T_oc_new @ np.linalg.inv(self.T_base_cam)
         if np.all(np.isfinite(T_ob)):
             self.ekf.relinearize(T_ob, dt)
+
+    def _two_view_due(self) -> bool:
+        """No scale source has moved this quarter's map yet: no landmarks, no floor, no stereo
+        partner, fused
+        poses that all sit where the first one did (no wheel moved them); or this quarter
+        started from two views and has no landmarks yet: it goes on measuring against the
+        same view, so the map keeps one gauge (nominal speed) until landmarks hold it."""
+        if not (self.params.two_view_init and not self.uses_floor and self.partner is None
+                and self.fused_poses and len(self.landmarks) == 0):
+            return False
+        if self._two_view_ref in self.fused_poses:
+            return True        # keeps the gauge until this quarter has landmarks
+        _, fT, _, _ = self._fused_arrays()
+        p = fT[:, :3, 3]
+        return float(np.max(np.linalg.norm(p - p[0], axis=1))) < self.params.epipolar_min_baseline
+
+    def rescale_command(self, command):
+        """The general arbiter's map-scale command (map_scale.MapScaleCommand): applied with
+        the first fused pose at or after its stamp, so every node rescales at the same frame."""
+        if command.epoch > self.scale_epoch and all(c.epoch != command.epoch for c in self._scale_pending):
+            self._scale_pending = sorted(self._scale_pending + [command], key=lambda c: c.epoch)
 
     def _remember_motion(self, stamp_ns, state):
         _, w, cov = self.ekf.twist
@@ -510,6 +545,8 @@ class QuarterEstimator:
                 or np.max(np.diag(C)) >= UNINFORMATIVE_VARIANCE:
             return 0.0
         stamp_ns = int(stamp_ns)
+        while self._scale_pending and stamp_ns >= self._scale_pending[0].from_ns:
+            map_scale.rescale_quarter(self, self._scale_pending.pop(0))
         first = not self.fused_poses
         if self.ekf.stamp_ns is None:
             self.ekf.reset(T)
@@ -680,7 +717,9 @@ class QuarterEstimator:
                 'fused_poses': {k: v.copy() for k, v in self.fused_poses.items()},
                 'structure_ms': self.structure_ms, 'extract_ms': self.extract_ms,
                 'motion': None if self._motion is None else (self._motion[0], self._motion[1].copy()),
-                'partner': self.partner, 'own_stamps': list(self.own_stamps)}
+                'partner': self.partner, 'own_stamps': list(self.own_stamps),
+                'scale_epoch': self.scale_epoch, 'two_view_ref': self._two_view_ref,
+                'scale_pending': [c.to_list() for c in self._scale_pending]}
 
     def set_state(self, s: dict):
         if s.get('version') != STATE_VERSION:
@@ -706,3 +745,6 @@ class QuarterEstimator:
             self.set_partner(*s['partner'])
         self._prefetched = None
         self._extract_due = None
+        self.scale_epoch = int(s['scale_epoch'])
+        self._two_view_ref = s['two_view_ref']
+        self._scale_pending = [map_scale.MapScaleCommand.from_list(c) for c in s['scale_pending']]

@@ -29,6 +29,7 @@ from std_msgs.msg import Int64MultiArray
 from camera_pose_nodes import kernel
 from camera_pose_nodes.camera_model import intrinsics_from_msg
 from camera_pose_nodes.frame_schedule import FrameSchedule, ScheduleBook
+from camera_pose_nodes.map_scale import MapScaleCommand
 from camera_pose_nodes.image_conversion import bgr8_message, image_msg_to_gray
 from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, QuarterParams
 from multicam_ego_motion.ros_plumbing import diagnostics
@@ -52,6 +53,7 @@ NODE_PARAMETERS = {
     'feedback_timeout_s': (0.5, 'longest wait for the previous frame\'s fused pose', 0.0, 60.0),
     'frame_schedule_topic': ('/ego_motion/frame_schedule', 'which frames to process when the graph is behind the cameras (general arbiter)', None, None),
     'partner_timeout_s': (5.0, 'stereo pair: longest hold of a fused pose for the partner camera\'s image of its frame (then applied without stereo matches)', 0.0, 600.0),
+    'map_scale_topic': ('/ego_motion/map_scale', 'map rescales of the general arbiter when a scale source appears (camera_pose_nodes/map_scale)', None, None),
     'debug_images': (False, 'publish tracks (bgr8): this quarter\'s part of the image with its features, their flow and landmark/epipolar status drawn, which the camera arbiter (debug_images too) puts together into /<cam>/tracks; off: nothing drawn or published', None, None),
 }
 
@@ -93,6 +95,7 @@ class QuarterNode(Node):
         self.quarter = int(p['quarter'])
         self.source = f'{self.camera.name}/q{self.quarter}'
         self.feedback_timeout_s = p['feedback_timeout_s']
+        self.scale_commands = []        # map rescales (map_scale), kept for a late CameraInfo
         self.schedule = ScheduleBook()  # frames skipped while the graph is behind (frame_schedule)
         self.skipped = 0                # images skipped since the last report
         self.estimator = None
@@ -120,6 +123,7 @@ class QuarterNode(Node):
         # topic -> (type, QoS, callback) of the per-frame inputs
         # (the schedule first: an executor takes ready subscriptions in creation order)
         self.inputs = {p['frame_schedule_topic']: (Int64MultiArray, LATCHED, self.on_schedule),
+                       p['map_scale_topic']: (Int64MultiArray, LATCHED, self.on_map_scale),
                        self.camera.image_topic: (Image, image_qos(p['image_qos']), self.on_image),
                        p['fused_pose_topic']: (PoseWithCovarianceStamped, RELIABLE, self.on_fused)}
         if self.partner is not None:
@@ -148,6 +152,8 @@ class QuarterNode(Node):
             return
         self.estimator = QuarterEstimator(self.camera, self.quarter, self.intrinsics, self.params,
                                           (msg.width, msg.height), self.floor_z)
+        for command in self.scale_commands:
+            self.estimator.rescale_command(command)
         self.connect_partner()
         self.stop_camera_info()
 
@@ -219,6 +225,16 @@ class QuarterNode(Node):
         kept = [(t, m) for t, m in self.pending if self.schedule.takes(stamp_to_ns(m.header.stamp))]
         self.skipped += len(self.pending) - len(kept)
         self.pending = deque(kept)
+
+    def on_map_scale(self, msg: Int64MultiArray):
+        try:
+            command = MapScaleCommand.from_list(msg.data)
+        except ValueError as e:
+            self.get_logger().error(f'{self.source}: map-scale command ignored: {e}')
+            return
+        self.scale_commands.append(command)
+        if self.estimator is not None:
+            self.estimator.rescale_command(command)
 
     def on_fused(self, msg: PoseWithCovarianceStamped):
         if self.estimator is not None and not self.estimator.takes_feedback(stamp_to_ns(msg.header.stamp)):

@@ -146,6 +146,7 @@ def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False,
 
 def recorded_topics(rig, debug_images: bool = False):
     topics = ['/odom', '/tf', '/ego_motion/fused_pose', '/ego_motion/path', '/ego_motion/frame_schedule',
+              '/ego_motion/map_scale',
               '/diagnostics']
     for c in rig.cameras:
         topics.append(f'/{c.name}/pose')

@@ -93,6 +93,11 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             result.cameras[name].append(cams[name])
         first = min(frame_stamps.values())
         fused = fusion.process(common, cams, wheel_twist=wheel.at(first), wheel_stamp_ns=wheel.stamp_at(first))
+        command = fusion.map_scale_command     # (as the quarters get it: latched, in time)
+        if command is not None:
+            for qs in estimators.values():
+                for q in qs:
+                    q.rescale_command(command)
         partner_gray = {}
         for stamp in sorted(set(frame_stamps.values())):
             T, C = fusion.pose_at(fused, stamp)
