@@ -91,16 +91,13 @@ def validate(args):
 
 
 def parse_camera_list(text, cameras: int, option: str):
-    """'0,8,16,24' -> [0.0, 8.0, 16.0, 24.0], one value per camera (None: not given)."""
+    """'0,8,16,24' -> [0.0, 8.0, 16.0, 24.0] (None: not given); camera_timing checks the count."""
     if text is None:
         return None
     try:
         values = [float(v) for v in str(text).split(',')]
     except ValueError:
         raise UserError(f'{option} must be comma-separated numbers, got {text!r}') from None
-    if len(values) != cameras:
-        raise UserError(f'{option} has {len(values)} value(s) but the rig has {cameras} cameras '
-                        '(one value per camera, in rig order)')
     if not all(np.isfinite(values)):
         raise UserError(f'{option} must be finite numbers, got {text!r}')
     return values
@@ -109,10 +106,15 @@ def parse_camera_list(text, cameras: int, option: str):
 def camera_timing(cameras: int, rate: float, offsets_ms=None, rates=None):
     """(offsets s, rates Hz) per camera, checked: a rate within 1..120 Hz, an offset within
     [0, its camera's frame period)."""
+    for option, values in (('--camera-offsets-ms', offsets_ms), ('--camera-rates', rates)):
+        if values is not None and len(values) != cameras:
+            raise UserError(f'{option} has {len(values)} value(s) but the rig has {cameras} cameras '
+                            '(one value per camera, in rig order)')
+    given = rates is not None
     rates = [float(rate)] * cameras if rates is None else [float(r) for r in rates]
     offsets_ms = [0.0] * cameras if offsets_ms is None else [float(o) for o in offsets_ms]
     for k, r in enumerate(rates):
-        if not 1 <= r <= 120:
+        if given and not 1 <= r <= 120:
             raise UserError(f'--camera-rates: camera {k} rate must be between 1 and 120 Hz, got {r:g}')
     for k, (o, r) in enumerate(zip(offsets_ms, rates)):
         if not 0 <= o < 1000.0 / r:
