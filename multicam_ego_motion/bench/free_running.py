@@ -1,8 +1,11 @@
 """Free-running cameras, a part of `ego-motion bench`: the loop (10 s at 15 Hz, 320x240, fx
 200, seed 7) synchronised, with the cameras capturing 0, 8, 16, 24 ms after the frame clock,
 and with two cameras at 30 Hz and two at 15 Hz, each through the graph (M = 2) in lockstep
-and in rate mode at the bag's rate, scored against the bag's ground truth. Rate-mode accuracy
-depends on the machine's load, so it is measured here, not asserted by a test.
+and in rate mode, scored against the bag's ground truth. Rate-mode accuracy depends on the
+machine's load, so it is measured here, not asserted by a test. Rate mode plays at RATE_MODE
+(half speed): at full speed two shared cores keep up with none of these rigs (the
+synchronised one too lost two thirds of its frames), and the row would measure the load, not
+the cameras' timing.
 """
 import shutil
 from pathlib import Path
@@ -10,6 +13,7 @@ from pathlib import Path
 from multicam_ego_motion.bench.camera_rate import WORKERS
 from multicam_ego_motion.bench.measures import score_run
 
+RATE_MODE = 0.5
 LOOP = dict(scenario='loop', seed=7, duration=10.0, width=320, height=240, fx=200.0)
 # name -> (frame rate, camera offsets ms, camera rates, sync window s)
 RIGS = {'synchronised 15 Hz': (15.0, None, None, 0.0),
@@ -58,7 +62,7 @@ def free_running(bags_folder: Path, out: Path, params) -> list:
         rig, rig_file = resolve_rig(Rosbag2Reader(bag), None)
         folder = out / f'{bag.name}_{"lockstep" if lockstep else "rate"}_m{WORKERS}'
         shutil.rmtree(folder, ignore_errors=True)
-        run_graph(bag, folder, rig, rig_file, params, WORKERS, lockstep=lockstep, rate=1.0,
+        run_graph(bag, folder, rig, rig_file, params, WORKERS, lockstep=lockstep, rate=RATE_MODE,
                   rebalance=False, logger=None, record_topics=['/odom', '/diagnostics'],
                   sync_window_s=RIGS[name][3])
         m = score_run(folder, bag)
@@ -66,6 +70,6 @@ def free_running(bags_folder: Path, out: Path, params) -> list:
     lines = [f'| free-running cameras, loop 10 s, M = {WORKERS} | mode | ATE [%] | final drift [%] '
              '| /odom poses | sync timeouts |', '|---|---|---:|---:|---:|---:|']
     for (name, lockstep), (ate, drift, poses, timeouts) in results.items():
-        lines.append(f'| {name} | {"lockstep" if lockstep else "rate 1.0"} | {ate:.3f} | {drift:.3f} '
+        lines.append(f'| {name} | {"lockstep" if lockstep else f"rate {RATE_MODE:g}"} | {ate:.3f} | {drift:.3f} '
                      f'| {poses} | {timeouts} |')
     return lines
