@@ -48,6 +48,7 @@ NODE_PARAMETERS = {
     'use_wheel_odometry': (True, 'fuse /wheel/odom as a body-twist prior when it is published', None, None),
     'wheel_odometry_topic': ('/wheel/odom', 'wheel odometry (nav_msgs/Odometry)', None, None),
     'sync_timeout_s': (0.5, 'longest wait for all cameras of one frame', 0.0, 60.0),
+    'sync_window_s': (0.0, 'free-running cameras: estimates whose stamps lie within this of one another are one frame, fused at its latest stamp (each moved there with the EKF\'s twist); 0 = identical stamps only (hardware-synchronised rig). Above the rig\'s capture spread, below half a frame period; a lockstep player must group frames by the same window', 0.0, 1.0),
     'wheel_wait_s': (0.5, 'then the longest wait for the wheel reading of that frame (while a wheel publisher is connected)', 0.0, 60.0),
     'path_max_poses': (5000, 'poses kept on /ego_motion/path (oldest dropped)', 1, 1000000),
     'path_min_spacing_m': (0.05, '/ego_motion/path keeps a pose every this many metres', 0.0, 100.0),
@@ -67,7 +68,8 @@ class GeneralArbiterNode(Node):
         self.rig = load_rig(p['rig_file'])
         self.p = p
         self.fusion = GeneralFusion(self.rig, fusion_params)
-        self.sync = StampSynchronizer(self.rig.names, p['sync_timeout_s'])
+        self.sync = StampSynchronizer(self.rig.names, p['sync_timeout_s'],
+                                      window_ns=int(round(p['sync_window_s'] * 1e9)))
         self.wheel = WheelBuffer()
         self.path = PathHistory(p['path_min_spacing_m'], p['path_min_turn_rad'], p['path_max_poses'],
                                 p['path_publish_period_s'])
@@ -76,6 +78,9 @@ class GeneralArbiterNode(Node):
         self.governor = FrameGovernor(p['max_lag_s'])
         # Latched: a quarter that starts or moves later still gets the schedule in force.
         self.pub_schedule = self.create_publisher(Int64MultiArray, '/ego_motion/frame_schedule', LATCHED)
+        # Latched too: map rescales (map_scale), each applied from a given frame on.
+        self.pub_map_scale = self.create_publisher(Int64MultiArray, '/ego_motion/map_scale', LATCHED)
+        self.map_scale_epoch = 0
         self.pub_fused = self.create_publisher(PoseWithCovarianceStamped, '/ego_motion/fused_pose', RELIABLE)
         self.pub_odom = self.create_publisher(Odometry, '/odom', RELIABLE)
         self.pub_tf = self.create_publisher(TFMessage, '/tf', RELIABLE)
@@ -134,19 +139,23 @@ class GeneralArbiterNode(Node):
     def fuse_held(self):
         while self.held:
             g, since = self.held[0]
-            if not self.wheel_settled(g.stamp_ns) and time.monotonic() - since < self.p['wheel_wait_s']:
+            # The wheel reading at the frame's first capture (free-running cameras: the wheel
+            # ticks with the frame clock, and a later reading only comes with the next frame).
+            if not self.wheel_settled(g.first_ns) and time.monotonic() - since < self.p['wheel_wait_s']:
                 return
             self.held.pop(0)
             t0 = time.thread_time()
             # Rig order, not arrival order: float sums must not depend on the scheduler.
             items = {n: g.items[n] for n in self.rig.names if n in g.items}
-            fused = self.fusion.process(g.stamp_ns, items, wheel_twist=self.wheel.at(g.stamp_ns))
+            fused = self.fusion.process(g.stamp_ns, items, wheel_twist=self.wheel.at(g.first_ns),
+                                        wheel_stamp_ns=self.wheel.stamp_at(g.first_ns))
             ms = (time.thread_time() - t0) * 1e3
             if not (np.all(np.isfinite(fused.T_odom_base)) and is_valid_covariance(fused.pose_covariance)
                     and is_valid_covariance(fused.twist_covariance)):
                 self.get_logger().error(f'fused estimate at {g.stamp_ns} is not finite/PD: not published')
                 continue
             self.govern(g.stamp_ns)
+            self.publish_map_scale()
             self.publish(fused, g, ms)
             if self.on_frame_done is not None:
                 self.on_frame_done(self)
@@ -169,6 +178,15 @@ class GeneralArbiterNode(Node):
                 f'{schedule.from_ns / 1e9:.3f} s' if schedule.stride > 1 else
                 f'caught up: processing every frame from {schedule.from_ns / 1e9:.3f} s')
 
+    def publish_map_scale(self):
+        """A new map rescale, before the fused pose (it applies from the next frame on)."""
+        command = self.fusion.map_scale_command
+        if command is not None and command.epoch != self.map_scale_epoch:
+            self.map_scale_epoch = command.epoch
+            self.pub_map_scale.publish(Int64MultiArray(data=command.to_list()))
+            self.get_logger().info(f'map rescaled by {command.factor:.4f} from '
+                                   f'{command.from_ns / 1e9:.3f} s (scale source: rig rotation)')
+
     # --- hand-over between workers (coordinator) ------------------------------------------
     def idle(self) -> bool:
         return True
@@ -189,15 +207,19 @@ class GeneralArbiterNode(Node):
     def publish(self, fused, group, ms):
         stamp = ns_to_stamp(fused.stamp_ns)
         odom_frame, base_frame = self.p['odom_frame'], self.p['base_frame']
-        self.pub_fused.publish(estimate_to_msg(PoseEstimate(
-            fused.stamp_ns, fused.T_odom_base, fused.pose_covariance, source='fused',
-            state=fused.state), odom_frame))
+        # One feedback per distinct camera stamp (free-running cameras), oldest first: each
+        # quarter triangulates from the fused pose at its own camera's capture time.
+        for s in feedback_stamps(group, fused.stamp_ns):
+            T, C = self.fusion.pose_at(fused, s)
+            self.pub_fused.publish(estimate_to_msg(PoseEstimate(
+                s, T, C, source='fused', state=fused.state), odom_frame))
         odom = Odometry()
         odom.header.stamp = stamp
         odom.header.frame_id = odom_frame
         odom.child_frame_id = base_frame
         fill_pose(odom.pose.pose, fused.T_odom_base)
-        odom.pose.covariance = covariance_field(fused.pose_covariance)
+        odom.pose.covariance = covariance_field(fused.odom_covariance if fused.odom_covariance is not None
+                                                else fused.pose_covariance)
         t = odom.twist.twist
         t.linear.x, t.linear.y, t.linear.z, t.angular.x, t.angular.y, t.angular.z = (
             float(v) for v in fused.twist)
@@ -218,8 +240,17 @@ class GeneralArbiterNode(Node):
         diagnostics.emit(stamp, diagnostics.status(
             'ego_motion/general_arbiter', level, '; '.join(parts),
             {'state': fused.state, 'scale_observed': fused.scale_observed,
+             'scale_source': fused.scale_fixed_by,
+             'scale_relative_std': round(float(fused.scale_relative_std), 6),
              'cameras_used': ','.join(fused.cameras_used), 'cameras_missing': ','.join(missing),
-             'frame_stride': self.governor.stride, 'arbiter_ms': ms}), self.diag_sink, self.pub_diag)
+             'frame_stride': self.governor.stride, 'arbiter_ms': ms,
+             'sync_timed_out': group.timed_out}), self.diag_sink, self.pub_diag)
+
+
+def feedback_stamps(group, fused_stamp_ns):
+    """The stamps the fused pose is fed back at: every camera's own stamp in the group, in
+    order (the fused stamp, the latest, last)."""
+    return sorted(set(group.stamps.values()) | {fused_stamp_ns})
 
 
 def main(args=None):

@@ -3,6 +3,10 @@
 Per frame: median filter across cameras (camera_median) -> covariance-weighted fusion of the
 inliers (quarter_fusion.information_fusion, correlation-inflated) -> BodyEKF update (gated).
 No informative camera: predict only, with the wheel-odometry twist prior when given.
+Free-running cameras: a frame's camera estimates may carry different stamps (within the
+general arbiter's sync window); each is moved to the frame's common time (the latest stamp)
+with the EKF's constant-twist motion model before the median (time_shift), and the fused
+pose is given back to each camera at its own stamp (pose_at).
 Scale: the rig-scale observer (rig_scale) is fed when per-camera translation directions are
 available and `scale_observed` reports it; until it is wired to correct anything, metric
 scale comes from the wheel prior (when configured) and from the landmarks.
@@ -16,7 +20,10 @@ from arbiter_node.body_ekf import BodyEKF, BodyEkfParams
 from arbiter_node.camera_median import median_filter
 from arbiter_node.covariance import condition_covariance
 from arbiter_node.quarter_fusion import CHI2_6DOF_999, information_fusion
+from arbiter_node.time_shift import shift_pose
 from arbiter_node.rig_scale import RigScaleResult, relative_motion, scale_correction, solve_rig_translation
+from arbiter_node.scale_state import ScaleState, metric_source
+from camera_pose_nodes.map_scale import scale_positions
 from camera_pose_nodes.pose_estimate import PoseEstimate
 from multicam_ego_motion.geometry.rig import Rig
 
@@ -43,12 +50,22 @@ PARAMETERS = {
     'lost_timeout_s': (2.0, 'without camera updates or wheel prior for this long, the state is lost', 0.1, 600.0),
     'arc_integration': (True, 'EKF prediction moves along the arc of the twist (constant body twist), not along the heading at the start of the step', None, None),
     'wheel_planar_only': (True, 'use only vx, vy, wz of the wheel twist (a wheeled base measures nothing else)', None, None),
-    'planar_motion': (True, 'the base moves on the rig\'s level floor (rig floor_z; robot_localization calls it two_d_mode): every frame measures its vz, wx, wy as 0', None, None),
+    'planar_motion': (True, 'the base moves on the rig\'s level floor (rig floor_z, not with floor_level false; robot_localization calls it two_d_mode): every frame measures its vz, wx, wy as 0', None, None),
     'planar_twist_std': (1e-3, 'std of that planar-motion measurement of vz (m/s), wx and wy (rad/s)', 1e-6, 10.0),
     'wheel_gate_chi2': (1e3, 'chi-square gate of the wheel twist against the EKF twist (slip detection)', 1.0, 1e9),
     'scale_direction_sigma_rad': (0.01, 'angular std of a camera translation direction fed to the rig-scale observer (rad)', 1e-5, 0.5),
     'scale_min_rotation_rad': (0.02, 'rig-scale observer: below this body rotation scale is unobservable (rad)', 1e-4, 1.0),
     'scale_max_relative_std': (0.1, 'rig-scale observer: trust t only when its predicted relative error is below this', 1e-3, 1.0),
+    'stereo_start_speed_std': (20.0, 'rig with a stereo pair (stereo_pairs) and no wheel yet: linear velocity std at the first camera fix (m/s); such a rig measures metric motion from the first frame and may start at speed (a car), where the at-rest start gated out every later frame', 1e-3, 1000.0),
+    'start_min_cameras': (2, 'without stereo, floor or wheel: the first fix needs this many cameras that agree (two-view initialisation)', 1, 64),
+    'rig_rotation_scale': (True, 'without stereo, floor or wheel: measure the map scale from the rig\'s rotation (rig_scale over windows of frames) and rescale the map (scale_state)', None, None),
+    'scale_unknown_relative_std': (1.0, 'without stereo, floor or wheel: the map scale\'s relative std before the rig has turned (scale_state; /odom\'s position covariance carries it)', 1e-3, 100.0),
+    'scale_window_rotation_rad': (1.0, 'scale_state: a rig-rotation scale observation spans this much body rotation (windows do not overlap)', 0.02, 3.0),
+    'scale_window_max_s': (4.0, 'scale_state: ... within at most this long', 0.1, 60.0),
+    'scale_snap_relative_std': (0.1, 'scale_state: the map is rescaled once the scale\'s relative std is below this', 1e-4, 1.0),
+    'scale_snap_min_change': (0.01, 'scale_state: after the first rescale, rescale again when the scale moved this much (relative)', 0.0, 1.0),
+    'scale_drift_per_sqrt_s': (0.01, 'scale_state: relative scale drift of a map without a scale source per sqrt(s) (the scale estimate\'s random walk)', 0.0, 1.0),
+    'scale_snap_about': ('origin', 'scale_state: rescale the map about the odom origin (`origin`: past and future odometry at one scale, a jump now) or the current pose (`current`: no jump, a kink)', None, None),
 }
 
 
@@ -67,10 +84,16 @@ class FusedEstimate:
     scale_observed: bool = False
     scale_source: str = 'landmarks'        # 'rig' | 'wheel' | 'landmarks' | 'none'
     scale_ratio: Optional[float] = None    # rig-observed / estimated translation (diagnostic)
+    scale_fixed_by: str = 'none'           # scale_state.SOURCES
+    scale_relative_std: float = 0.0        # the map scale's relative std (scale_state)
+    odom_covariance: Optional[np.ndarray] = None   # /odom's: pose_covariance + the scale's share
     cameras_used: List[str] = field(default_factory=list)
     cameras_rejected: Dict[str, str] = field(default_factory=dict)
     cameras_missing: List[str] = field(default_factory=list)     # in the rig, no estimate or uninformative
     ekf_d2: Optional[float] = None         # Mahalanobis^2 of the fused camera pose vs prediction
+    # the twist (and covariance) early cameras were moved to stamp_ns with (free-running cameras)
+    shift_twist: Optional[np.ndarray] = None
+    shift_twist_covariance: Optional[np.ndarray] = None
 
 
 class GeneralFusion:
@@ -93,8 +116,11 @@ class GeneralFusion:
         self.last_support_ns: Optional[int] = None     # last camera update or wheel prior
         self.has_tracked = False
         self.rejections = 0
+        self.wheel_seen = False
         self.last_T: np.ndarray = np.eye(4)
         self.last_scale: Optional[RigScaleResult] = None
+        self.wheel_seen = False
+        self.scale = ScaleState(self.rig, self.params)
 
     # -------------------------------------------------------------- scale hook
     def observe_scale(self, T_prev: np.ndarray, T_now: np.ndarray,
@@ -127,20 +153,64 @@ class GeneralFusion:
         return {n: (replace(e, covariance=e.covariance + floor) if e.informative else e)
                 for n, e in estimates.items()}
 
+    def _to_common_time(self, stamp_ns: int, estimates: Mapping[str, PoseEstimate],
+                        twist: np.ndarray, twist_cov: np.ndarray) -> Dict[str, PoseEstimate]:
+        # A camera captured earlier than the frame's common time: its pose moved forward along
+        # the EKF's twist (predicted to stamp_ns), its covariance grown by the twist's.
+        out = {}
+        for n, e in estimates.items():
+            if e.stamp_ns != stamp_ns and e.informative:
+                T, C = shift_pose(e.T_odom_base, e.covariance, (stamp_ns - e.stamp_ns) * 1e-9, twist,
+                                  twist_cov, self.params['accel_noise'], self.params['angular_accel_noise'])
+                e = replace(e, stamp_ns=stamp_ns, T_odom_base=T, covariance=C)
+            out[n] = e
+        return out
+
+    def pose_at(self, fused: 'FusedEstimate', stamp_ns: int) -> Tuple[np.ndarray, np.ndarray]:
+        """The fused pose and covariance moved to `stamp_ns` (a camera's own capture time in
+        the frame); at the fused stamp itself, exactly the fused pose.
+
+        Moved back with the twist the cameras were moved forward with, not the updated one: a
+        camera that agrees with the fusion then gets its own pose back, whatever the twist's
+        error. With the updated twist, the difference (the twist's correction times the
+        offset) went into every camera's landmarks, frame after frame: under acceleration the
+        odometry fell behind by centimetres a second."""
+        twist = fused.shift_twist if fused.shift_twist is not None else fused.twist
+        twist_cov = fused.shift_twist_covariance if fused.shift_twist is not None else fused.twist_covariance
+        return shift_pose(fused.T_odom_base, fused.pose_covariance, (stamp_ns - fused.stamp_ns) * 1e-9,
+                          twist, twist_cov, self.params['accel_noise'], self.params['angular_accel_noise'])
+
     # -------------------------------------------------------------- per frame
     def process(self, stamp_ns: int, camera_estimates: Mapping[str, PoseEstimate],
                 wheel_twist: Optional[Tuple[np.ndarray, np.ndarray]] = None,
-                camera_directions: Optional[Mapping[str, np.ndarray]] = None) -> FusedEstimate:
-        """One frame. wheel_twist = (twist 6, covariance 6x6) in base_link, or None.
-        camera_directions: optional per-camera translation directions since the last frame."""
+                camera_directions: Optional[Mapping[str, np.ndarray]] = None,
+                wheel_stamp_ns: Optional[int] = None) -> FusedEstimate:
+        """One frame at stamp_ns (its common time; a camera estimate stamped earlier is moved
+        to it). wheel_twist = (twist 6, covariance 6x6) in base_link, or None.
+        camera_directions: optional per-camera translation directions since the last frame.
+        wheel_stamp_ns: the wheel reading's stamp; one between the last frame and this one
+        (free-running cameras: the wheel ticks with the frame's first capture) is applied
+        at its own time, before the cameras."""
         p = self.params
-        if self.last_stamp_ns is not None:
+        wheel_used = False
+        free_running = any(e.stamp_ns != stamp_ns for e in camera_estimates.values())
+        wheel_first = (free_running and wheel_twist is not None and wheel_stamp_ns is not None
+                       and self.last_stamp_ns is not None
+                       and self.last_stamp_ns < wheel_stamp_ns < stamp_ns)
+        if wheel_first:
+            # Why: applied at the frame's latest stamp, a wheel speed 24 ms old under 1.5 m/s^2
+            # slowed every prediction, and the fused poses fed back carried it into the maps.
+            self.ekf.predict((wheel_stamp_ns - self.last_stamp_ns) * 1e-9)
+            wheel_used = self._wheel_update(wheel_twist)
+            self.ekf.predict((stamp_ns - wheel_stamp_ns) * 1e-9)
+        elif self.last_stamp_ns is not None:
             self.ekf.predict((stamp_ns - self.last_stamp_ns) * 1e-9)   # dt <= 0 is a no-op
         self.last_stamp_ns = stamp_ns if self.last_stamp_ns is None else max(stamp_ns, self.last_stamp_ns)
         T_prev = self.last_T
 
         prior = (self.ekf.T, self.ekf.pose_covariance) if p['median_use_prior'] and self.has_tracked else None
-        camera_estimates = self._with_floor(camera_estimates)
+        shift_twist = (self.ekf.twist, self.ekf.twist_covariance)
+        camera_estimates = self._with_floor(self._to_common_time(stamp_ns, camera_estimates, *shift_twist))
         med = median_filter(dict(camera_estimates), p['median_mahalanobis_gate'], p['median_max_translation_m'],
                             p['median_max_rotation_rad'], prior, p['median_prior_max_cameras'], p['median_weighted'])
         out_rejected = dict(med.rejected)
@@ -148,14 +218,23 @@ class GeneralFusion:
         used: List[str] = []
         d2 = None
         camera_update = False
-        if med.inliers:
+        # Without a scale source the first fix comes from the quarters' two-view geometry,
+        # whose direction of travel one quarter alone can get wrong (a narrow view confuses
+        # sideways travel with a turn): the rig starts once enough cameras agree.
+        start_ok = (self.has_tracked or len(med.inliers) >= p['start_min_cameras']
+                    or metric_source(self.rig, self.wheel_seen or wheel_twist is not None) is not None)
+        if med.inliers and start_ok:
             names = sorted(med.inliers)
             ests = [med.inliers[n] for n in names]
             T_f, cov_f = information_fusion([e.T_odom_base for e in ests], [e.covariance for e in ests], med.T_median)
             cov_f = condition_covariance(cov_f * (1.0 + (len(ests) - 1) * p['camera_correlation']))
             if not self.has_tracked:
                 # first camera fix: the cameras define the pose (odom origin was the start)
-                self.ekf.reinitialize(T_f, cov_f)
+                twist_cov = None
+                if getattr(self.rig, 'stereo_pairs', ()) and not self.wheel_seen and wheel_twist is None:
+                    twist_cov = np.diag([p['stereo_start_speed_std'] ** 2] * 3
+                                        + [p['initial_twist_std'] ** 2] * 3)
+                self.ekf.reinitialize(T_f, cov_f, twist_cov=twist_cov)
                 camera_update, d2 = True, 0.0
             else:
                 camera_update, d2 = self.ekf.update_pose(T_f, cov_f, p['ekf_gate_chi2'])
@@ -175,8 +254,10 @@ class GeneralFusion:
 
         # The wheel twist after the camera update (applying it at mid-step, trapezoidally,
         # was tried: it lags less in turns but spin_then_drive's scale went to -12 %).
-        wheel_used = self._wheel_update(wheel_twist) if wheel_twist is not None else False
-        if p['planar_motion'] and self.rig.floor_z is not None:
+        if wheel_twist is not None and not wheel_first:
+            wheel_used = self._wheel_update(wheel_twist)
+        self.wheel_seen = self.wheel_seen or wheel_twist is not None
+        if p['planar_motion'] and self.rig.floor_z is not None and getattr(self.rig, 'floor_level', True):
             # Why: the cameras measure the body's climb and tilt as freely as its travel, and
             # with floor landmarks (ground_plane) a pitch error tilts the floor they are put on;
             # the two fed each other, 0.2 m of height drift over 9 m in spin_then_drive.
@@ -195,6 +276,8 @@ class GeneralFusion:
         else:
             state = 'lost'
 
+        fixed_by, scale_std, odom_cov = self._scale_step(stamp_ns, wheel_used, camera_update,
+                                                         {n: med.inliers[n].T_odom_base for n in used})
         T_now = self.ekf.T
         scale_ratio = None
         scale_source = 'wheel' if wheel_used else ('landmarks' if self.has_tracked else 'none')
@@ -211,4 +294,33 @@ class GeneralFusion:
             twist=self.ekf.twist, twist_covariance=self.ekf.twist_covariance, state=state,
             scale_observed=bool(rig_observed or wheel_used), scale_source=scale_source,
             scale_ratio=scale_ratio, cameras_used=used, cameras_rejected=out_rejected,
-            cameras_missing=missing, ekf_d2=d2)
+            cameras_missing=missing, ekf_d2=d2, shift_twist=shift_twist[0],
+            shift_twist_covariance=shift_twist[1], scale_fixed_by=fixed_by,
+            scale_relative_std=scale_std,
+            odom_covariance=self.ekf.pose_covariance if odom_cov is None else odom_cov)
+
+    def _scale_step(self, stamp_ns, wheel_used, camera_update, camera_poses):
+        """scale_state's part of a frame: (source, relative std, /odom covariance or None).
+        Nothing here touches the estimate while stereo, floor or wheel fix the scale."""
+        self.wheel_seen = self.wheel_seen or wheel_used
+        other = metric_source(self.rig, self.wheel_seen)
+        if other is not None:
+            return other, 0.0, None
+        sc = self.scale
+        c = sc.pending
+        if sc.apply_pending(stamp_ns, self.ekf, self):
+            # this frame's cameras were measured before the quarters rescaled
+            for n, T in camera_poses.items():
+                T = T.copy()
+                T[:3, 3] = scale_positions(T[:3, 3], c.factor, c.centre)
+                camera_poses[n] = T
+        if camera_update and self.params['rig_rotation_scale']:
+            sc.observe(stamp_ns, self.ekf.T, camera_poses)
+            sc.decide(stamp_ns, self.ekf.T)
+        fixed_by = 'rig rotation' if sc.observed else 'none'
+        return fixed_by, sc.relative_std, sc.odom_covariance(self.ekf.T, self.ekf.pose_covariance)
+
+    @property
+    def map_scale_command(self):
+        """The latest map rescale (camera_pose_nodes/map_scale), None before any."""
+        return self.scale.command

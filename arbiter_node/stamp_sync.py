@@ -1,60 +1,162 @@
 """Group estimates of one frame from several sources (quarters, or cameras) by stamp.
 
-A group is released when every source that is alive has reported, or when it has waited
-`timeout_s`. A source that missed a release is marked absent and no longer waited for until
-it reports again; so a camera whose topics are missing costs one timeout, not one per frame.
-Groups are released in stamp order and a stamp older than the last release is dropped.
+A group holds at most one estimate per source whose stamps lie within `window_ns` of one
+another (0: identical stamps, a hardware-synchronised rig; free-running cameras capture a
+few milliseconds apart). A group is released when every source that is alive and due has
+reported, when a later group is complete, or when it has waited `timeout_s`. A source that
+missed a release it was due for is marked absent and no longer waited for until it reports
+again; so a camera whose topics are missing costs one timeout, not one per frame.
+
+Due: a source's frame period is the shortest step between its stamps; a group that ends
+before the source's next frame can come (its stamp before the group plus most of its period)
+is not waited for. Nor is a group older than a stamp the source already reported (a source's
+stamps only grow: with two frames in flight, a 15 Hz camera's next frame can come while the
+30 Hz frame before it is still open). Cameras at different rates (30 and 15 Hz) then fill the groups of their own
+frames and no other. Until a source has two stamps its period is unknown: it is waited for,
+and a first miss does not mark it absent (it may be a slower camera, not a dead one).
+
+Groups are released in stamp order and a stamp not after the last release is dropped.
 """
 from dataclasses import dataclass, field
-from typing import Dict, List
+from typing import Dict, List, Optional
+
+# A source is not due in a group that ends more than this share of its period before its
+# next expected stamp: frame-to-frame jitter of a free-running camera stays well below it.
+DUE_JITTER_SHARE = 0.125
+RECENT_STAMPS = 8
 
 
 @dataclass
 class Group:
-    stamp_ns: int
+    stamp_ns: int                      # the common time: the latest stamp of the group
     items: Dict[str, object]
     missing: List[str] = field(default_factory=list)
     timed_out: bool = False
+    stamps: Dict[str, int] = field(default_factory=dict)   # source -> its own stamp
+
+    @property
+    def first_ns(self) -> int:
+        return min(self.stamps.values()) if self.stamps else self.stamp_ns
+
+
+class _Open:
+    __slots__ = ('items', 'stamps', 'first_seen')
+
+    def __init__(self, now):
+        self.items: Dict[str, object] = {}
+        self.stamps: Dict[str, int] = {}
+        self.first_seen = now
+
+    @property
+    def lo(self):
+        return min(self.stamps.values())
+
+    @property
+    def hi(self):
+        return max(self.stamps.values())
 
 
 class StampSynchronizer:
-    def __init__(self, sources, timeout_s: float):
+    def __init__(self, sources, timeout_s: float, window_ns: int = 0):
         self.sources = list(sources)
         self.timeout_s = float(timeout_s)
+        self.window_ns = int(window_ns)
+        if self.window_ns < 0:
+            raise ValueError(f'sync window must be >= 0 ns, got {window_ns}')
         self.absent = set()
-        self._groups: Dict[int, Dict[str, object]] = {}
-        self._first_seen: Dict[int, float] = {}
+        self._open: List[_Open] = []               # by first stamp
         self.last_released_ns = None
         self.dropped_late = 0
+        self.last_stamp: Dict[str, int] = {}       # newest stamp per source
+        self.period_ns: Dict[str, int] = {}        # shortest step between a source's stamps
+        self.unknown_misses: Dict[str, int] = {}   # misses while the period was unknown
+        self.recent: Dict[str, List[int]] = {}     # a source's last RECENT_STAMPS stamps
 
     def add(self, source: str, stamp_ns: int, item, now: float) -> List[Group]:
         # Even a late estimate proves the source is alive: wait for it from the next frame on.
         self.absent.discard(source)
+        self.unknown_misses.pop(source, None)
+        self._note_stamp(source, stamp_ns)
         if self.last_released_ns is not None and stamp_ns <= self.last_released_ns:
             self.dropped_late += 1
             return self.poll(now)
-        self._groups.setdefault(stamp_ns, {})[source] = item
-        self._first_seen.setdefault(stamp_ns, now)
+        group = self._group_for(source, stamp_ns, now)
+        group.items[source] = item
+        group.stamps[source] = stamp_ns
+        self._open.sort(key=lambda g: g.lo)
         return self.poll(now)
+
+    def _note_stamp(self, source, stamp_ns):
+        last = self.last_stamp.get(source)
+        if last is not None and stamp_ns > last:
+            step = stamp_ns - last
+            if source not in self.period_ns or step < self.period_ns[source]:
+                self.period_ns[source] = int(step)
+        if last is None or stamp_ns > last:
+            self.last_stamp[source] = int(stamp_ns)
+            self.recent.setdefault(source, []).append(int(stamp_ns))
+            del self.recent[source][:-RECENT_STAMPS]
+
+    def _group_for(self, source, stamp_ns, now) -> _Open:
+        fits = []
+        for g in self._open:
+            if source in g.items:
+                if g.stamps[source] == stamp_ns:
+                    return g               # the same estimate again (a republished frame)
+                continue
+            if max(g.hi, stamp_ns) - min(g.lo, stamp_ns) <= self.window_ns:
+                fits.append(g)
+        if fits:
+            # (a window wider than the rig's spread can fit two: the nearest stamps win)
+            return min(fits, key=lambda g: max(abs(t - stamp_ns) for t in g.stamps.values()))
+        g = _Open(now)
+        self._open.append(g)
+        return g
 
     def expected(self):
         return [s for s in self.sources if s not in self.absent]
 
+    def due(self, source: str, g: _Open) -> bool:
+        """Whether the source can have a frame in the group (see the module docstring)."""
+        if source in g.items:
+            return True
+        period = self.period_ns.get(source)
+        prev = max((t for t in self.recent.get(source, ()) if t < g.lo), default=None)
+        if period is None or prev is None:
+            return True
+        return prev + period - DUE_JITTER_SHARE * period <= g.lo + self.window_ns
+
+    def past(self, source: str, g: _Open) -> bool:
+        """The source reported a later frame already: it has nothing more for this group (a
+        source's stamps only grow), e.g. while lockstep has two frames in flight."""
+        return source not in g.items and self.last_stamp.get(source, -1) > g.lo + self.window_ns
+
+    def _waits_for(self, source: str, g: _Open) -> bool:
+        return source not in self.absent and self.due(source, g) and not self.past(source, g)
+
+    def _complete(self, g: _Open) -> bool:
+        return all(s in g.items for s in self.sources if self._waits_for(s, g))
+
     def poll(self, now: float) -> List[Group]:
         out = []
-        while self._groups:
-            stamp = min(self._groups)
-            items = self._groups[stamp]
-            complete = all(s in items for s in self.expected())
-            newer_complete = any(all(s in g for s in self.expected())
-                                 for st, g in self._groups.items() if st > stamp)
-            waited = now - self._first_seen[stamp] >= self.timeout_s
+        while self._open:
+            g = self._open[0]
+            complete = self._complete(g)
+            newer_complete = any(self._complete(h) for h in self._open[1:])
+            waited = now - g.first_seen >= self.timeout_s
             if not (complete or waited or newer_complete):
                 break
-            missing = [s for s in self.sources if s not in items]
-            self.absent.update(missing)
-            out.append(Group(stamp, items, missing, timed_out=not complete))
-            del self._groups[stamp]
-            del self._first_seen[stamp]
-            self.last_released_ns = stamp
+            missing = [s for s in self.sources if s not in g.items and self.due(s, g)]
+            for s in missing:
+                if self.past(s, g):
+                    continue               # alive: it skipped this frame
+                if s in self.last_stamp and s not in self.period_ns:
+                    # Reported once so far: maybe a slower camera; absent on its second miss.
+                    self.unknown_misses[s] = self.unknown_misses.get(s, 0) + 1
+                    if self.unknown_misses[s] < 2:
+                        continue
+                self.absent.add(s)
+            out.append(Group(g.hi, g.items, missing, timed_out=not complete, stamps=dict(g.stamps)))
+            self._open.pop(0)
+            self.last_released_ns = g.hi
         return out

@@ -54,6 +54,13 @@ class WheelBuffer:
         newest = self.readings[-1][0]
         return newest >= stamp_ns or stamp_ns - newest >= self.max_age_ns
 
+    def stamp_at(self, stamp_ns: int) -> Optional[int]:
+        """The stamp of the reading at(stamp_ns) gives (None when it gives none)."""
+        for s, _, _ in reversed(self.readings):
+            if s <= stamp_ns:
+                return s if stamp_ns - s < self.max_age_ns else None
+        return None
+
     def at(self, stamp_ns: int) -> Optional[Tuple[np.ndarray, np.ndarray]]:
         """The newest reading not after stamp_ns, if it is fresh; else None."""
         for s, twist, cov in reversed(self.readings):

@@ -237,11 +237,12 @@ class LandmarkMap:
         self._keep(keep)
         return bad
 
-    def place(self, ids: np.ndarray, X: np.ndarray, C: np.ndarray):
-        """Move landmarks `ids` onto the floor: X (M, 3) with covariances C (M, 3, 3), known
-        better than their triangulation (ground_plane); their parallax record stays."""
+    def place(self, ids: np.ndarray, X: np.ndarray, C: np.ndarray, on_floor: bool = True):
+        """Set landmarks `ids` from outside the triangulation: X (M, 3) with covariances
+        C (M, 3, 3), on the floor (ground_plane) or from a stereo pair (stereo_match);
+        their parallax record stays."""
         self._upsert(ids, np.asarray(X, float).reshape(-1, 3), np.asarray(C, float).reshape(-1, 3, 3),
-                     None, on_floor=True)
+                     None, on_floor=on_floor)
 
     def forget(self, track_id: int):
         self._keep(self.ids != int(track_id))

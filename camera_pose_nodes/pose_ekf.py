@@ -282,6 +282,22 @@ class PoseEKF:
         return inl
 
     # ----- realign to the fused estimate --------------------------------------------------
+    def relinearize(self, T_odom_base: np.ndarray, dt: float):
+        """Move the prior's mean to T_odom_base (a robust pose from the same frame's
+        landmarks), its covariance kept, and the velocity by the same displacement over dt:
+        the update is then linearized where the measurements are, as an iterated EKF's
+        first step. Matters when the prior is far off: a car at full speed from the first
+        frame moved 1.2 m while the filter predicted rest, and one linearized update from
+        there overshot by 10 to 20 %."""
+        T = np.asarray(T_odom_base, float)
+        d = T[:3, 3] - self.kf.x[P_, 0]
+        if dt > 0.0:
+            self.kf.x[V_, 0] = self.kf.x[V_, 0] + d / dt
+        self.kf.x[P_, 0] = T[:3, 3]
+        self.kf.x[TH, 0] = 0.0
+        u, _, vt = np.linalg.svd(T[:3, :3])
+        self.R_nom = u @ vt
+
     def set_pose(self, T_odom_base: np.ndarray, cov6: np.ndarray):
         """Replace the pose by the arbiters' fused pose N(T, cov6).
 

@@ -15,6 +15,7 @@ from dataclasses import asdict, field, fields, make_dataclass
 from functools import lru_cache
 from typing import Dict, Optional
 
+import cv2
 import numpy as np
 
 from camera_pose_nodes.camera_model import CameraIntrinsics
@@ -24,11 +25,16 @@ from camera_pose_nodes.landmark_map import LandmarkMap, bearings_odom, angle_deg
 from camera_pose_nodes.pose_ekf import PoseEKF
 from camera_pose_nodes.pose_estimate import PoseEstimate, UNINFORMATIVE_VARIANCE, uninformative
 from camera_pose_nodes.quarter_region import QuarterRegion
+from camera_pose_nodes.stereo_match import StereoConfig, StereoPair, relative_pose
+from camera_pose_nodes import map_scale
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.geometry.rig import CameraMount
 from multicam_ego_motion.geometry.se3 import rotvec_to_R
 
-STATE_VERSION = 6     # 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays; 6: motion
+# Fused poses come back at the stamps a quarter tracked, within a feedback timeout or so.
+OWN_STAMPS_KEPT = 32
+
+STATE_VERSION = 9     # 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays; 6: motion; 7: stereo partner; 8: map scale; 9: own stamps
 STAGES = ('acquire', 'extract', 'track', 'pose', 'structure')
 _ROTATION_ONLY_POSITION_VARIANCE = 1.0e2   # m^2: 'position not measured', still < UNINFORMATIVE
 _TRIANGULATION_VIEWS = 5     # views per DLT: oldest, newest and evenly spaced between
@@ -96,7 +102,18 @@ PARAMETERS = {
     'max_depth': (200.0, 'farthest accepted landmark depth (m)', 1.0, 1e5),
     'ground_plane': (True, 'put landmarks that lie on the floor onto it: their depth is then metric from the camera height (see ground_plane; needs the rig\'s floor_z)', None, None),
     'ground_tolerance': (0.3, 'a floor landmark\'s depth is never farther than this fraction from its ray\'s floor intersection', 0.001, 1.0),
+    'two_view_init': (True, 'without landmarks, floor or any motion of the fused poses, initialise from two-view geometry on the tracks (essential matrix): rotation and direction of travel, the length from two_view_nominal_speed (see two_view)', None, None),
+    'two_view_min_points': (12, 'RANSAC inliers a two-view initialisation needs', 5, 1000),
+    'two_view_parallax_deg': (1.0, 'median rotation-compensated ray angle a two-view initialisation needs (deg)', 0.05, 45.0),
+    'two_view_nominal_speed': (1.0, 'the gauge of a map without a scale source: the camera moved this fast between the two views (m/s); the general arbiter rescales once a source measures the scale', 1e-3, 100.0),
     'ground_map_scale_std': (0.03, 'relative scale uncertainty of the fused poses, allowed for when judging a landmark on the floor', 0.0, 1.0),
+    'stereo': (True, "with a camera whose view overlaps this one (rig stereo_pairs): match the tracks without a landmark into its image of the same stamp and triangulate them from the baseline, metric from one frame (stereo_match); no partner: no effect", None, None),
+    'stereo_pyramid_levels': (4, 'Lucas-Kanade pyramid levels of the search into the partner image (disparities up to ~10 x 2^levels px)', 0, 6),
+    'stereo_fb_px': (1.0, 'forward-backward error that rejects a stereo match (px)', 0.05, 10.0),
+    'stereo_epipolar_px': (1.5, "a stereo match farther than this from its epipolar line (the rig's extrinsics) is rejected (px)", 0.05, 20.0),
+    'stereo_pixel_sigma': (1.0, "stereo matching noise (px, 1 sigma): the disparity noise in the stereo landmarks' covariance", 0.05, 10.0),
+    'stereo_max_range': (80.0, 'farthest stereo landmark, in baselines (far points carry little depth)', 2.0, 10000.0),
+    'stereo_prior_depth': (20.0, "where the search into the partner image starts, in baselines, while the quarter has no landmarks of its own (then: their median depth)", 1.0, 10000.0),
 }
 
 
@@ -167,7 +184,29 @@ class QuarterEstimator:
                                      p.refine_factor, focal_px=0.5 * (intrinsics.fx + intrinsics.fy),
                                      pixel_sigma=p.pixel_sigma)
         self.sigma_uv = (p.pixel_sigma / intrinsics.fx, p.pixel_sigma / intrinsics.fy)
+        self.stereo = None          # StereoPair with the partner camera (set_partner)
+        self.partner = None         # (CameraMount, CameraIntrinsics) of that camera
         self.reset()
+
+    def set_partner(self, partner: CameraMount, intrinsics: CameraIntrinsics):
+        """The camera whose view overlaps this one (a stereo pair, Rig.stereo_pairs) and its
+        intrinsics: from then on apply_fused_pose takes its image of the same stamp."""
+        if not self.params.stereo:
+            return
+        self.partner = (partner, intrinsics)
+        p = self.params
+        baseline = float(np.linalg.norm(relative_pose(self.T_base_cam, partner.T_base_cam)[1]))
+        cfg = StereoConfig(window=p.klt_window, pyramid_levels=p.stereo_pyramid_levels,
+                           iterations=p.klt_iterations, epsilon_px=p.klt_epsilon_px,
+                           fb_px=p.stereo_fb_px, epipolar_px=p.stereo_epipolar_px,
+                           pixel_sigma=p.stereo_pixel_sigma, min_depth=p.min_depth,
+                           max_depth=min(p.max_depth, p.stereo_max_range * baseline))
+        self.stereo = StereoPair(self.T_base_cam, partner.T_base_cam, self.intrinsics, intrinsics, cfg)
+        self.partner_size = (intrinsics.width, intrinsics.height)
+
+    @property
+    def wants_partner_image(self) -> bool:
+        return self.stereo is not None
 
     def reset(self):
         self.tracker.reset()
@@ -182,6 +221,16 @@ class QuarterEstimator:
         # Kept as it was then, so a flow computed early (prefetch) or late is the same.
         self._motion = None
         self._extract_due = None   # stamp whose new features are still to be extracted
+        self.own_stamps = []       # the last OWN_STAMPS_KEPT stamps this quarter tracked
+        self.scale_epoch = 0         # map rescales applied (map_scale)
+        self._two_view_ref = None    # stamp of the view a two-view initialisation started from
+        self._scale_pending = []     # map-scale commands waiting for their frame
+
+    def takes_feedback(self, stamp_ns: int) -> bool:
+        """Whether a fused pose at `stamp_ns` is this quarter's: one of its own frames (or
+        any, before the first). Free-running cameras: the general arbiter feeds the fused pose
+        back at every camera's stamp; another camera's carries nothing to triangulate here."""
+        return not self.own_stamps or int(stamp_ns) in self.own_stamps
 
     def close(self):
         self.tracker.close()
@@ -238,6 +287,7 @@ class QuarterEstimator:
 
         # (the rotation steers the search only when the flow is computed now)
         self.tracker.track(stamp_ns, crop, flow, None if flow is not None else self._flow_predictor(stamp_ns))
+        self.own_stamps = self.own_stamps[-(OWN_STAMPS_KEPT - 1):] + [int(stamp_ns)]
         t2 = time.thread_time()
         ms['track'] += (t2 - t1) * 1e3
 
@@ -250,17 +300,23 @@ class QuarterEstimator:
         self.extract_ms = 0.0
         t3 = time.thread_time()
 
+        stamp_before = self.ekf.stamp_ns
         self.ekf.predict(stamp_ns)
         has, X = self.landmarks.lookup(self.tracker.ids)
         n_inliers = 0
         if len(X):
             xy = self.intrinsics.undistort_points(self.tracker.pts[has])
+            if self.stereo is not None and stamp_before is not None:
+                self._relinearize(X, xy, (stamp_ns - stamp_before) * 1e-9)
             X_cov = (self.landmarks.covariances_of(self.tracker.ids[has])
                      if self.params.landmark_covariance else None)
             inl = self.ekf.update(X, xy, self.sigma_uv, self.T_base_cam, self.params.gate_chi2,
                                   self.params.min_depth, X_cov)
             n_inliers = int(inl.sum())
         n_epipolar = self._epipolar_update(stamp_ns, ~has) if self.params.epipolar else 0
+        n_two_view = 0
+        if n_inliers < self.params.min_inliers and self._two_view_due():
+            n_two_view = map_scale.two_view_init(self, stamp_ns)
         if not self.ekf.healthy():
             # Cannot happen by construction (guards in the EKF); if it does, restart the
             # filter from the last fused pose rather than publish NaN.
@@ -274,6 +330,9 @@ class QuarterEstimator:
         cov = self.ekf.pose_covariance
         if n_inliers >= self.params.min_inliers:
             state = 'tracking'
+        elif n_two_view:
+            state = 'tracking'     # pose and covariance from the two views (map_scale)
+            n_inliers, n_epipolar = n_two_view, 0
         elif n_epipolar >= self.params.min_inliers:
             # Epipolar lines fix rotation and the direction of travel, never the distance: the
             # position is the prediction, so report it as unknown and only the rotation counts.
@@ -293,6 +352,53 @@ class QuarterEstimator:
             return uninformative(stamp_ns, self.ekf.T_odom_base, self.source, state, **kw)
         return PoseEstimate(stamp_ns, self.ekf.T_odom_base, cov,
                             source=self.source, state=state, **kw)
+
+    def _relinearize(self, X, xy, dt):
+        """Stereo rigs (metric landmarks from the first frame, often a car at speed): a
+        robust pose from this frame's landmarks (OpenCV PnP, RANSAC, from the prediction)
+        becomes the point the EKF update is linearized at (PoseEKF.relinearize)."""
+        if len(X) < max(6, self.params.min_inliers):
+            return
+        T_oc = self.ekf.T_odom_base @ self.T_base_cam
+        R_co = T_oc[:3, :3].T
+        rvec, _ = cv2.Rodrigues(R_co)
+        tvec = -R_co @ T_oc[:3, 3]
+        f = 0.5 * (self.intrinsics.fx + self.intrinsics.fy)
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            X.astype(np.float64), xy.astype(np.float64), np.eye(3), None,
+            rvec.copy(), tvec.reshape(3, 1).copy(), useExtrinsicGuess=True, iterationsCount=100,
+            reprojectionError=3.0 * self.params.pixel_sigma / f, confidence=0.99,
+            flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok or inl is None or len(inl) < max(6, self.params.min_inliers, len(X) // 2):
+            return
+        R_co, _ = cv2.Rodrigues(rvec)
+        T_oc_new = np.eye(4)
+        T_oc_new[:3, :3] = R_co.T
+        T_oc_new[:3, 3] = -R_co.T @ tvec.reshape(3)
+        T_ob = T_oc_new @ np.linalg.inv(self.T_base_cam)
+        if np.all(np.isfinite(T_ob)):
+            self.ekf.relinearize(T_ob, dt)
+
+    def _two_view_due(self) -> bool:
+        """No scale source has moved this quarter's map yet: no landmarks, no floor, no stereo
+        partner, fused
+        poses that all sit where the first one did (no wheel moved them); or this quarter
+        started from two views and has no landmarks yet: it goes on measuring against the
+        same view, so the map keeps one gauge (nominal speed) until landmarks hold it."""
+        if not (self.params.two_view_init and not self.uses_floor and self.partner is None
+                and self.fused_poses and len(self.landmarks) == 0):
+            return False
+        if self._two_view_ref in self.fused_poses:
+            return True        # keeps the gauge until this quarter has landmarks
+        _, fT, _, _ = self._fused_arrays()
+        p = fT[:, :3, 3]
+        return float(np.max(np.linalg.norm(p - p[0], axis=1))) < self.params.epipolar_min_baseline
+
+    def rescale_command(self, command):
+        """The general arbiter's map-scale command (map_scale.MapScaleCommand): applied with
+        the first fused pose at or after its stamp, so every node rescales at the same frame."""
+        if command.epoch > self.scale_epoch and all(c.epoch != command.epoch for c in self._scale_pending):
+            self._scale_pending = sorted(self._scale_pending + [command], key=lambda c: c.epoch)
 
     def _remember_motion(self, stamp_ns, state):
         _, w, cov = self.ekf.twist
@@ -422,10 +528,13 @@ class QuarterEstimator:
         return trails, status
 
     # ----- feedback from the general arbiter -----------------------------------------------
-    def apply_fused_pose(self, stamp_ns: int, T_odom_base: np.ndarray, cov6: np.ndarray) -> float:
+    def apply_fused_pose(self, stamp_ns: int, T_odom_base: np.ndarray, cov6: np.ndarray,
+                         partner_gray: Optional[np.ndarray] = None) -> float:
         """Realign to the fused pose of frame `stamp_ns`, then triangulate and prune
         landmarks with it. Returns the structure stage time (ms), also reported with the
-        next frame's estimate. An uninformative fused pose carries nothing and is ignored."""
+        next frame's estimate. An uninformative fused pose carries nothing and is ignored.
+        partner_gray: the stereo partner's image of the same stamp (set_partner), whose
+        matches give the tracks without a landmark a metric one."""
         self.extract_pending()     # the new features are part of the structure (floor seeding)
         t0 = time.thread_time()
         T = np.asarray(T_odom_base, float)
@@ -436,6 +545,8 @@ class QuarterEstimator:
                 or np.max(np.diag(C)) >= UNINFORMATIVE_VARIANCE:
             return 0.0
         stamp_ns = int(stamp_ns)
+        while self._scale_pending and stamp_ns >= self._scale_pending[0].from_ns:
+            map_scale.rescale_quarter(self, self._scale_pending.pop(0))
         first = not self.fused_poses
         if self.ekf.stamp_ns is None:
             self.ekf.reset(T)
@@ -448,6 +559,8 @@ class QuarterEstimator:
         self._fused_cache = None
         self._prune_landmarks(stamp_ns, T)
         self._triangulate()
+        if self.stereo is not None and partner_gray is not None:
+            self._stereo_landmarks(stamp_ns, T, partner_gray)
         if first and self.uses_floor:
             self._seed_floor(stamp_ns, T)
         self._forget_unused_poses()
@@ -526,6 +639,41 @@ class QuarterEstimator:
                                       np.full(N, d), self.landmarks.sigma_n)
         self.landmarks.place(ids[valid], X[valid], C[valid])
 
+    def _stereo_landmarks(self, stamp_ns, T, gray_b):
+        """Tracks seen in this frame without a landmark: matched into the partner's image
+        of the same stamp and triangulated from the rig's baseline, placed in odom with the
+        fused pose. Every frame: the map of a camera that sees only far or fast-moving
+        points (a car's) never waits for parallax. A placed landmark is re-triangulated over
+        time like any other once its parallax allows (LandmarkMap.want)."""
+        gray_b = np.asarray(gray_b)
+        if gray_b.dtype != np.uint8 or gray_b.ndim != 2 \
+                or (gray_b.shape[1], gray_b.shape[0]) != self.partner_size:
+            raise UserError(f'{self.source}: stereo partner image is {gray_b.dtype} {gray_b.shape}, '
+                            f'expected gray uint8 {self.partner_size[0]}x{self.partner_size[1]} (CameraInfo)')
+        tr = self.tracker
+        has, _ = self.landmarks.rows(tr.ids)
+        seen = tr.last_stamps() == stamp_ns
+        rows = np.flatnonzero(~has & seen)
+        if not len(rows) or tr.prev_crop is None:
+            return
+        R_oc, c_o = self._camera_pose(T)
+        # the search starts at the depth of the quarter's own landmarks when it has some
+        prior = self.params.stereo_prior_depth * self.stereo.baseline
+        with_lm = has & seen
+        if with_lm.sum() >= 5:
+            _, X = self.landmarks.lookup(tr.ids[with_lm])
+            z = ((X - c_o) @ R_oc)[:, 2]
+            z = z[z > 0]
+            if len(z) >= 5:
+                prior = float(np.median(z))
+        ok, _, X_a, C_a = self.stereo.match(tr.prev_crop, self.region.offset, gray_b,
+                                            tr.last_px()[rows], prior)
+        if not ok.any():
+            return
+        X_o = X_a[ok] @ R_oc.T + c_o
+        C_o = R_oc @ C_a[ok] @ R_oc.T
+        self.landmarks.place(tr.ids[rows[ok]], X_o, C_o, on_floor=False)
+
     def _snap_to_floor(self, ids, R_oc, c_o, xy, T):
         """Floor landmarks onto the floor, judged from each one's newest view (body poses T)."""
         _, X = self.landmarks.lookup(ids)
@@ -568,7 +716,10 @@ class QuarterEstimator:
                 'landmarks': self.landmarks.get_state(),
                 'fused_poses': {k: v.copy() for k, v in self.fused_poses.items()},
                 'structure_ms': self.structure_ms, 'extract_ms': self.extract_ms,
-                'motion': None if self._motion is None else (self._motion[0], self._motion[1].copy())}
+                'motion': None if self._motion is None else (self._motion[0], self._motion[1].copy()),
+                'partner': self.partner, 'own_stamps': list(self.own_stamps),
+                'scale_epoch': self.scale_epoch, 'two_view_ref': self._two_view_ref,
+                'scale_pending': [c.to_list() for c in self._scale_pending]}
 
     def set_state(self, s: dict):
         if s.get('version') != STATE_VERSION:
@@ -584,9 +735,16 @@ class QuarterEstimator:
         self.landmarks.set_state(s['landmarks'])
         self.fused_poses = {int(k): np.array(v, float) for k, v in s['fused_poses'].items()}
         self._fused_cache = None
+        self.own_stamps = [int(v) for v in s['own_stamps']]
         self.structure_ms = float(s['structure_ms'])
         self.extract_ms = float(s['extract_ms'])
         m = s['motion']
         self._motion = None if m is None else (int(m[0]), np.array(m[1], float))
+        self.stereo, self.partner = None, None
+        if s['partner'] is not None:
+            self.set_partner(*s['partner'])
         self._prefetched = None
         self._extract_due = None
+        self.scale_epoch = int(s['scale_epoch'])
+        self._two_view_ref = s['two_view_ref']
+        self._scale_pending = [map_scale.MapScaleCommand.from_list(c) for c in s['scale_pending']]

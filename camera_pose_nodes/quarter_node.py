@@ -9,9 +9,16 @@ part of the image with its tracks drawn, for the camera arbiter's /<cam>/tracks:
 Frame ordering: the estimate of frame t+1 needs the fused pose of frame t. An image that
 arrives before that feedback waits (up to `feedback_timeout_s`), so that replay in lockstep
 is deterministic and rate mode degrades gracefully instead of stalling.
+
+Stereo pairs (the rig's stereo_pairs): the quarter also takes its partner camera's image and
+CameraInfo, and applies the fused pose of frame t only with the partner's image of t (held
+up to `partner_timeout_s`, then applied without, with a warning), as the sequential
+pipeline does.
 """
 import time
 from collections import deque
+
+import numpy as np
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -22,6 +29,7 @@ from std_msgs.msg import Int64MultiArray
 from camera_pose_nodes import kernel
 from camera_pose_nodes.camera_model import intrinsics_from_msg
 from camera_pose_nodes.frame_schedule import FrameSchedule, ScheduleBook
+from camera_pose_nodes.map_scale import MapScaleCommand
 from camera_pose_nodes.image_conversion import bgr8_message, image_msg_to_gray
 from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, QuarterParams
 from multicam_ego_motion.ros_plumbing import diagnostics
@@ -44,6 +52,8 @@ NODE_PARAMETERS = {
     'fused_pose_topic': ('/ego_motion/fused_pose', 'general arbiter feedback topic', None, None),
     'feedback_timeout_s': (0.5, 'longest wait for the previous frame\'s fused pose', 0.0, 60.0),
     'frame_schedule_topic': ('/ego_motion/frame_schedule', 'which frames to process when the graph is behind the cameras (general arbiter)', None, None),
+    'partner_timeout_s': (5.0, 'stereo pair: longest hold of a fused pose for the partner camera\'s image of its frame (then applied without stereo matches)', 0.0, 600.0),
+    'map_scale_topic': ('/ego_motion/map_scale', 'map rescales of the general arbiter when a scale source appears (camera_pose_nodes/map_scale)', None, None),
     'debug_images': (False, 'publish tracks (bgr8): this quarter\'s part of the image with its features, their flow and landmark/epipolar status drawn, which the camera arbiter (debug_images too) puts together into /<cam>/tracks; off: nothing drawn or published', None, None),
 }
 
@@ -74,10 +84,18 @@ class QuarterNode(Node):
             raise UserError(f'{self.get_fully_qualified_name()}: parameter rig_file is required')
         rig = load_rig(p['rig_file'])
         self.camera = rig.camera(p['camera'])
+        partners = rig.stereo_partners(self.camera.name) if self.params.stereo else []
+        # the first partner: a quarter matches into one other image
+        self.partner = rig.camera(partners[0]) if partners else None
+        self.partner_intrinsics = None
+        self.partner_images = {}        # stamp -> partner Image message, newest few
+        self.held_fused = None          # (since, fused msg) waiting for the partner image
+        self.partner_timeout_s = p['partner_timeout_s']
         self.floor_z = rig.floor_z
         self.quarter = int(p['quarter'])
         self.source = f'{self.camera.name}/q{self.quarter}'
         self.feedback_timeout_s = p['feedback_timeout_s']
+        self.scale_commands = []        # map rescales (map_scale), kept for a late CameraInfo
         self.schedule = ScheduleBook()  # frames skipped while the graph is behind (frame_schedule)
         self.skipped = 0                # images skipped since the last report
         self.estimator = None
@@ -105,12 +123,17 @@ class QuarterNode(Node):
         # topic -> (type, QoS, callback) of the per-frame inputs
         # (the schedule first: an executor takes ready subscriptions in creation order)
         self.inputs = {p['frame_schedule_topic']: (Int64MultiArray, LATCHED, self.on_schedule),
+                       p['map_scale_topic']: (Int64MultiArray, LATCHED, self.on_map_scale),
                        self.camera.image_topic: (Image, image_qos(p['image_qos']), self.on_image),
                        p['fused_pose_topic']: (PoseWithCovarianceStamped, RELIABLE, self.on_fused)}
+        if self.partner is not None:
+            self.inputs[self.partner.image_topic] = (Image, image_qos(p['image_qos']), self.on_partner_image)
         if not shared_inputs:
             for topic, (msg_type, qos, callback) in self.inputs.items():
                 self.create_subscription(msg_type, topic, callback, qos)
         self.info_sub = self.create_subscription(CameraInfo, self.camera.camera_info_topic, self.on_info, RELIABLE)
+        self.partner_info_sub = (None if self.partner is None else self.create_subscription(
+            CameraInfo, self.partner.camera_info_topic, self.on_partner_info, RELIABLE))
         self.poll_timer = self.create_timer(POLL_PERIOD_S, self.poll)
         self.get_logger().info(f'{self.source}: waiting for {self.camera.image_topic} '
                                f'({kernel.selected()} kernel)')
@@ -129,7 +152,39 @@ class QuarterNode(Node):
             return
         self.estimator = QuarterEstimator(self.camera, self.quarter, self.intrinsics, self.params,
                                           (msg.width, msg.height), self.floor_z)
+        for command in self.scale_commands:
+            self.estimator.rescale_command(command)
+        self.connect_partner()
         self.stop_camera_info()
+
+    def on_partner_info(self, msg: CameraInfo):
+        if self.partner_intrinsics is not None:
+            return
+        try:
+            self.partner_intrinsics = intrinsics_from_msg(msg, self.partner.name)
+        except (UserError, ValueError) as e:
+            self.get_logger().error(f'{self.source}: bad CameraInfo of stereo partner '
+                                    f'{self.partner.name}: {e}', throttle_duration_sec=5.0)
+            return
+        if self.partner_info_sub is not None:
+            self.destroy_subscription(self.partner_info_sub)
+            self.partner_info_sub = None
+        self.connect_partner()
+        self.apply_held()
+
+    def connect_partner(self):
+        if (self.estimator is not None and self.partner_intrinsics is not None
+                and not self.estimator.wants_partner_image):
+            self.estimator.set_partner(self.partner, self.partner_intrinsics)
+
+    def on_partner_image(self, msg: Image):
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        if self.last_fused_ns is not None and stamp_ns <= self.last_fused_ns:
+            return                      # its frame's fused pose went ahead without it
+        self.partner_images[stamp_ns] = msg
+        while len(self.partner_images) > 8:
+            del self.partner_images[min(self.partner_images)]
+        self.apply_held()
 
     def stop_camera_info(self):
         # Only the first good CameraInfo is used, and drivers (and bags) repeat it with every
@@ -171,11 +226,65 @@ class QuarterNode(Node):
         self.skipped += len(self.pending) - len(kept)
         self.pending = deque(kept)
 
+    def on_map_scale(self, msg: Int64MultiArray):
+        try:
+            command = MapScaleCommand.from_list(msg.data)
+        except ValueError as e:
+            self.get_logger().error(f'{self.source}: map-scale command ignored: {e}')
+            return
+        self.scale_commands.append(command)
+        if self.estimator is not None:
+            self.estimator.rescale_command(command)
+
     def on_fused(self, msg: PoseWithCovarianceStamped):
+        if self.estimator is not None and not self.estimator.takes_feedback(stamp_to_ns(msg.header.stamp)):
+            return                      # another camera's capture time (free-running cameras)
+        if self.partner is not None and self.estimator is not None:
+            # Stereo: applied with the partner's image of the same frame (apply_held), as
+            # the sequential pipeline does, whichever of the two arrives first
+            if self.held_fused is not None:
+                self.apply_fused(self.held_fused[1], None)
+            self.held_fused = (time.monotonic(), msg)
+            self.apply_held()
+            return
+        self.apply_fused(msg, None)
+
+    def apply_held(self, timed_out=False):
+        if self.held_fused is None:
+            return
+        since, msg = self.held_fused
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        image = self.partner_images.get(stamp_ns)
+        if self.partner_intrinsics is None or image is None:
+            if not timed_out:
+                return
+            what = (f'CameraInfo on {self.partner.camera_info_topic}' if self.partner_intrinsics is None
+                    else f'image on {self.partner.image_topic}')
+            self.get_logger().warning(
+                f'{self.source}: no stereo partner {what} for frame {stamp_ns / 1e9:.6f} s after '
+                f'{self.partner_timeout_s} s: fused pose applied without stereo matches')
+            self.publish_diag(msg.header.stamp, 'warn', f'stereo partner {what} missing for this frame')
+        self.held_fused = None
+        gray = image if isinstance(image, np.ndarray) else None
+        if gray is None and image is not None and self.partner_intrinsics is not None:
+            try:
+                gray = image_msg_to_gray(image, expected_size=(self.partner_intrinsics.width,
+                                                               self.partner_intrinsics.height))
+            except (UserError, ValueError) as e:
+                self.get_logger().error(f'{self.source}: stereo partner image rejected: {e}',
+                                        throttle_duration_sec=5.0)
+        for k in [k for k in self.partner_images if k <= stamp_ns]:
+            del self.partner_images[k]
+        self.apply_fused(msg, gray)
+
+    def apply_fused(self, msg: PoseWithCovarianceStamped, partner_gray):
         fused = decode_fused(msg)
+        if self.estimator is not None and not self.estimator.takes_feedback(fused.stamp_ns):
+            return                      # another camera's capture time (free-running cameras)
         self.last_fused_ns = fused.stamp_ns
         if self.estimator is not None:
-            self.estimator.apply_fused_pose(fused.stamp_ns, fused.T_odom_base, fused.covariance)
+            self.estimator.apply_fused_pose(fused.stamp_ns, fused.T_odom_base, fused.covariance,
+                                            partner_gray)
             if self.on_frame_done is not None:
                 self.on_frame_done(self)
         self.drain()
@@ -185,6 +294,8 @@ class QuarterNode(Node):
     def poll(self):
         """Timeouts (feedback, missing CameraInfo); called every POLL_PERIOD_S by the node's
         own timer, or by its worker's one timer for all its nodes (worker.py)."""
+        if self.held_fused is not None and time.monotonic() - self.held_fused[0] > self.partner_timeout_s:
+            self.apply_held(timed_out=True)
         self.drain()
 
     def ready_for_next(self, first_wait) -> bool:
@@ -301,7 +412,7 @@ class QuarterNode(Node):
     # --- hand-over between workers (coordinator) ------------------------------------------
     def idle(self) -> bool:
         """Between frames: nothing pending and the last frame's fused pose applied."""
-        return not self.pending and (self.last_processed_ns is None or (
+        return not self.pending and self.held_fused is None and (self.last_processed_ns is None or (
             self.last_fused_ns is not None and self.last_fused_ns >= self.last_processed_ns))
 
     def get_state(self):
@@ -311,13 +422,36 @@ class QuarterNode(Node):
         return {'estimator': self.estimator.get_state(), 'intrinsics': self.intrinsics,
                 'image_size': self.estimator.image_size,
                 'last_processed_ns': self.last_processed_ns, 'last_fused_ns': self.last_fused_ns,
-                'schedule': self.schedule.get_state()}
+                'schedule': self.schedule.get_state(),
+                # stereo: the partner's CameraInfo and the images that came ahead of their frame
+                'partner_intrinsics': self.partner_intrinsics,
+                'partner_images': self.partner_grays()}
+
+    def partner_grays(self):
+        """The partner images waiting for their frame, as arrays (picklable)."""
+        if self.partner_intrinsics is None:
+            return {}
+        size = (self.partner_intrinsics.width, self.partner_intrinsics.height)
+        out = {}
+        for k, m in self.partner_images.items():
+            try:
+                out[k] = m if isinstance(m, np.ndarray) else image_msg_to_gray(m, expected_size=size)
+            except (UserError, ValueError):
+                pass
+        return out
 
     def set_state(self, s):
         self.intrinsics = s['intrinsics']
         self.estimator = QuarterEstimator(self.camera, self.quarter, self.intrinsics, self.params,
                                           tuple(s['image_size']), self.floor_z)
         self.estimator.set_state(s['estimator'])
+        if s.get('partner_intrinsics') is not None and self.partner is not None:
+            self.partner_intrinsics = s['partner_intrinsics']
+            if self.partner_info_sub is not None:
+                self.destroy_subscription(self.partner_info_sub)
+                self.partner_info_sub = None
+            self.connect_partner()
+        self.partner_images.update(s.get('partner_images') or {})
         self.stop_camera_info()
         self.last_processed_ns = s['last_processed_ns']
         self.last_fused_ns = s['last_fused_ns']

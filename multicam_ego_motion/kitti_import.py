@@ -4,10 +4,11 @@ Input layout: image_l/ and image_r/ (rectified 8-bit PNGs, same names), calib.tx
 P1, 3x4 row-major, optionally prefixed "P0:"), poses.txt (optional: per frame the left
 camera's pose in the first left camera frame, 3x4 row-major, optical axes).
 
-Output rig: `left` and `right`; base_link sits at the left camera with REP-103 axes
-(x forward = optical z), so the right camera is `baseline` metres along -y. Ground truth is
-base_link in odom (odom = base_link at the first frame), twist in base_link from central
-differences. Frames are 0.1 s apart (KITTI is 10 Hz).
+Output rig: `left` and `right`, named as a stereo pair (stereo_pairs); base_link sits on the
+road below the left camera (KITTI's camera height, 1.65 m: the cameras at z = 1.65, floor_z
+= 0; floor_level false: the road climbs and tilts, so no planar-motion constraint) with REP-103 axes (x forward = optical z), so the right camera is `baseline` metres
+along -y. Ground truth is base_link in odom (odom = base_link at the first frame), twist in
+base_link from central differences. Frames are 0.1 s apart (KITTI is 10 Hz).
 """
 import logging
 from pathlib import Path
@@ -26,6 +27,7 @@ from multicam_ego_motion.geometry.se3 import R_to_rotvec, inv_T, make_T, rotvec_
 log = logging.getLogger(__name__)
 
 FRAME_PERIOD_NS = 100_000_000
+CAMERA_HEIGHT_M = 1.65     # KITTI's cameras above the road (the Velodyne setup's paper)
 GROUND_TRUTH_VAR = (1e-4,) * 6
 
 
@@ -119,19 +121,20 @@ def read_mono(path: Path, shape=None):
     return img
 
 
-def stereo_rig(baseline: float) -> Rig:
+def stereo_rig(baseline: float, height: float = CAMERA_HEIGHT_M) -> Rig:
     R = optical_rotation(0.0)
     return Rig(cameras=[
         CameraMount('left', '/left/image_raw', '/left/camera_info', 'left_optical',
-                    np.zeros(3), R),
+                    np.array([0.0, 0.0, height]), R),
         CameraMount('right', '/right/image_raw', '/right/camera_info', 'right_optical',
-                    np.array([0.0, -baseline, 0.0]), R)])
+                    np.array([0.0, -baseline, height]), R)],
+        floor_z=0.0, floor_level=False, stereo_pairs=(('left', 'right'),))
 
 
-def base_poses(camera_poses, R_base_optical):
-    """Left-camera poses in the first camera frame -> base_link poses in odom."""
-    T_bo = np.eye(4)
-    T_bo[:3, :3] = R_base_optical
+def base_poses(camera_poses, T_base_left):
+    """Left-camera poses in the first camera frame -> base_link poses in odom (odom =
+    base_link at the first frame)."""
+    T_bo = np.asarray(T_base_left, float)
     T_ob = inv_T(T_bo)
     return [T_bo @ T @ T_ob for T in camera_poses]
 
@@ -187,7 +190,7 @@ def import_kitti(folder, out, rig_out=None, max_frames=None, progress=True, whee
     h, w = first.shape
     intr = {'left': CameraIntrinsics(w, h, P0[0, 0], P0[1, 1], P0[0, 2], P0[1, 2], tx=P0[0, 3]),
             'right': CameraIntrinsics(w, h, P1[0, 0], P1[1, 1], P1[0, 2], P1[1, 2], tx=P1[0, 3])}
-    poses = base_poses(camera_poses, rig.cameras[0].rotation)
+    poses = base_poses(camera_poses, rig.cameras[0].T_base_cam)
     twists = body_twists(poses, FRAME_PERIOD_NS * 1e-9)
     wheel = simulated_wheel(twists, wheel_seed) if wheel_seed is not None and twists else []
 

@@ -24,3 +24,9 @@ def fusion_params_from(params_file):
     graph runs."""
     from arbiter_node.general_fusion import PARAMETERS
     return node_params(params_file, 'general_arbiter', set(PARAMETERS))
+
+
+def sync_window_from(params_file) -> float:
+    """The general arbiter's frame window (sync_window_s; 0 when the file does not set it):
+    a lockstep player and the sequential baseline group frames by it as the arbiter does."""
+    return float(node_params(params_file, 'general_arbiter', {'sync_window_s'}).get('sync_window_s', 0.0))

@@ -38,6 +38,10 @@ def configure_parser(p):
                         'the odometry is the same for any N)')
     p.add_argument('--migrate-every', type=int, default=0, metavar='K',
                    help='debug (lockstep): move one quarter node to the next worker every K frames')
+    p.add_argument('--sync-window', type=float, default=None, metavar='S',
+                   help='free-running cameras: images within S seconds are one frame, fused at '
+                        'its latest stamp (the general arbiter\'s sync_window_s, and the lockstep '
+                        'player\'s frames; default: the params file\'s value)')
     add_remote_arguments(p)
     p.add_argument('--debug-images', action='store_true',
                    help='draw the tracker (the nodes\' debug_images parameter) and record each '
@@ -69,11 +73,48 @@ def resolve_rig(bag_reader, rig_arg):
     from multicam_ego_motion.bag.rig_from_tf import rig_from_bag
     from multicam_ego_motion.geometry.rig import load_rig
     if rig_arg:
-        return load_rig(rig_arg), Path(rig_arg)
-    beside = Path(bag_reader.path) / 'rig.yaml'
-    if beside.exists():
-        return load_rig(beside), beside
-    return rig_from_bag(bag_reader), None
+        rig, path = load_rig(rig_arg), Path(rig_arg)
+    elif (Path(bag_reader.path) / 'rig.yaml').exists():
+        path = Path(bag_reader.path) / 'rig.yaml'
+        rig = load_rig(path)
+    else:
+        rig, path = rig_from_bag(bag_reader), None
+    return with_detected_stereo_pairs(bag_reader, rig, path)
+
+
+def with_detected_stereo_pairs(bag_reader, rig, path):
+    """A rig that names no stereo_pairs gets those found from its extrinsics and the bag's
+    first CameraInfo of each camera (stereo_match.overlapping_pairs); the nodes read the rig
+    file, so a rig that gained pairs is written to a new file (returned with it)."""
+    import tempfile
+    from dataclasses import replace
+
+    from camera_pose_nodes.camera_model import intrinsics_from_msg
+    from camera_pose_nodes.stereo_match import overlapping_pairs
+    if not rig.detect_stereo or rig.stereo_pairs or len(rig.cameras) < 2:
+        return rig, path
+    topics = {c.camera_info_topic: c.name for c in rig.cameras if c.camera_info_topic in bag_reader.topics}
+    intrinsics = {}
+    for topic, msg, _ in bag_reader.decoded(list(topics)):
+        name = topics[topic]
+        if name not in intrinsics:
+            try:
+                intrinsics[name] = intrinsics_from_msg(msg, name)
+            except (UserError, ValueError):
+                continue      # the quarter reports a bad CameraInfo
+        if len(intrinsics) == len(topics):
+            break
+    pairs = overlapping_pairs(rig, intrinsics)
+    if not pairs:
+        return rig, path
+    rig = replace(rig, stereo_pairs=pairs)
+    print(f'rig: overlapping cameras found: stereo pairs {", ".join("/".join(p) for p in pairs)} '
+          '(name stereo_pairs in the rig file to choose)', flush=True)
+    if path is None:
+        return rig, None
+    out = Path(tempfile.mkdtemp(prefix='ego_motion_rig_')) / 'rig.yaml'
+    rig.save(out)
+    return rig, out
 
 
 CAMERA_TOPIC_TYPES = (('image_topic', 'sensor_msgs/msg/Image'),
@@ -101,7 +142,8 @@ LOCKSTEP_SYNC_TIMEOUT_S = 10.0
 LOCKSTEP_DEPTH = 2
 
 
-def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False):
+def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False,
+                    sync_window_s=None):
     # Lockstep replay waits for everything (deterministic); rate mode must keep going.
     wait = 60.0 if lockstep else 0.3
     general = {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2,
@@ -112,6 +154,8 @@ def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False)
                'use_sim_time': not lockstep}
     if lockstep:
         general['max_lag_s'] = 0.0
+    if sync_window_s is not None:     # (left out when not given: the params file's value stands)
+        general['sync_window_s'] = float(sync_window_s)
     overrides = {'quarter': {'image_qos': 'reliable' if lockstep else 'sensor_data',
                              'feedback_timeout_s': wait},
                  'camera_arbiter': {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2},
@@ -124,6 +168,7 @@ def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False)
 
 def recorded_topics(rig, debug_images: bool = False):
     topics = ['/odom', '/tf', '/ego_motion/fused_pose', '/ego_motion/path', '/ego_motion/frame_schedule',
+              '/ego_motion/map_scale',
               '/diagnostics']
     for c in rig.cameras:
         topics.append(f'/{c.name}/pose')
@@ -228,7 +273,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
               use_wheel=True, ack_timeout=120.0, start_offset=0.0, duration=None,
               migrate_every=0, rebalance=True, logger=print, record_topics=None,
               lockstep_depth=LOCKSTEP_DEPTH, debug_images=False, kill_worker_at=None,
-              remote=None, remote_cpu=False) -> GraphRun:
+              sync_window_s=None, remote=None, remote_cpu=False) -> GraphRun:
     """Coordinator + in-process player and recorder: one run of the graph over a bag.
     kill_worker_at (lockstep; the bench's crash row): SIGKILL the last worker once this many
     frames were acknowledged, as a crash would. remote: Coordinator keywords for remote
@@ -248,9 +293,14 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
     from multicam_ego_motion.ros_plumbing.qos import RELIABLE
     from nav_msgs.msg import Odometry
 
+    from multicam_ego_motion.params_file import sync_window_from
+
     reader = Rosbag2Reader(bag)
+    # The player's lockstep frames must be the general arbiter's groups.
+    window = sync_window_from(params) if sync_window_s is None else float(sync_window_s)
     coordinator = Coordinator(rig, Path(rig_file).resolve(), Path(params).resolve(), workers=workers,
-                              overrides=graph_overrides(lockstep, use_wheel, debug_images), log_dir=out / 'logs',
+                              overrides=graph_overrides(lockstep, use_wheel, debug_images, sync_window_s),
+                              log_dir=out / 'logs',
                               rebalance=rebalance, migrate_every=migrate_every, logger=logger,
                               **(remote or {}))
     # No rclpy signal handlers: on Ctrl-C they invalidate the context under the spinning
@@ -303,7 +353,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
         recorder.wait_for_topics(10.0)
         player = BagPlayer(bag, PlayOptions(
             lockstep=lockstep, lockstep_depth=lockstep_depth, rate=rate, ack_topic='/odom',
-            ack_timeout_s=ack_timeout, discovery_s=0.5, progress=None,
+            ack_timeout_s=ack_timeout, discovery_s=0.5, progress=None, sync_window_s=window,
             start_offset_s=start_offset, duration_s=duration,
             between_frames=(coordinator.between_frames if kill_worker_at is None
                             else _killing(coordinator, kill_worker_at)) if lockstep else None,
@@ -385,7 +435,7 @@ def run(args) -> int:
                   start_offset=args.start_offset, duration=args.duration,
                   migrate_every=args.migrate_every, rebalance=not args.no_rebalance,
                   logger=lambda t: print(t, flush=True), lockstep_depth=args.lockstep_depth,
-                  debug_images=args.debug_images, remote=remote)
+                  debug_images=args.debug_images, sync_window_s=args.sync_window, remote=remote)
     st = g.coordinator.stats
     print(f'coordinator: {st.migrations} migrations ({st.rebalances} rebalances), '
           f'{st.restarts} worker restarts'

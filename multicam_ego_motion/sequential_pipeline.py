@@ -8,6 +8,11 @@ fused-pose feedback; quaternions round the last bits), an image that comes befor
 camera's first CameraInfo is processed once that arrives (the quarter node keeps it pending),
 and the wheel twist is the one the general arbiter would pick. The estimator is chaotic (a
 last-bit difference can move a final drift by 50 %), so anything less is another run.
+
+Free-running cameras (`sync_window_s` > 0, the general arbiter's parameter): images whose
+stamps lie within the window are one frame, as the arbiter groups them; each camera is
+processed at its own stamp, the frame fused at its latest, and the fused pose fed back at
+every camera's stamp, oldest first, as the general arbiter publishes it.
 """
 import time
 from collections import defaultdict
@@ -37,9 +42,10 @@ class SequentialResult:
 
 def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: dict = None,
                    use_wheel: bool = True, max_frames: int = None, progress=None,
-                   quarters=(1, 2, 3, 4)) -> SequentialResult:
+                   quarters=(1, 2, 3, 4), sync_window_s: float = 0.0) -> SequentialResult:
     """`quarters`: which quarters of every camera run (all four in the graph; fewer to show
-    what one quarter alone achieves)."""
+    what one quarter alone achieves). `sync_window_s`: the general arbiter's frame window."""
+    window_ns = int(round(sync_window_s * 1e9))
     reader = Rosbag2Reader(bag_path)
     present = [c for c in rig.cameras if c.image_topic in reader.topics]
     if not present:
@@ -55,9 +61,10 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
     by_topic = {c.image_topic: c for c in present}
     info_topic = {c.camera_info_topic: c for c in present}
     estimators = {}   # camera name -> [QuarterEstimator x4]
+    intrinsics = {}   # camera name -> its first CameraInfo's intrinsics
     result = SequentialResult()
-    frame = {}        # camera name -> image message of the current stamp
-    frame_stamp = None
+    frame = {}        # camera name -> image message of the current frame
+    frame_stamps = {}  # camera name -> its image's stamp
     wheel = WheelBuffer()
 
     def as_received(est, source):
@@ -69,13 +76,14 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             return
         t0 = time.perf_counter()
         cams = {}
+        common = max(frame_stamps.values())
         # Rig order, as the general arbiter fuses: float sums in another order differ in the
         # last bits, and gating decisions can amplify that over a run.
         for name, msg in sorted(frame.items(), key=lambda kv: rig.names.index(kv[0])):
             if name not in estimators:
                 continue
             gray = image_msg_to_gray(msg, expected_size=estimators[name][0].image_size)
-            ests = [q.process_image(frame_stamp, gray) for q in estimators[name]]
+            ests = [q.process_image(frame_stamps[name], gray) for q in estimators[name]]
             for e in ests:
                 result.quarters[e.source].append(e)
                 for k, v in e.stage_ms.items():
@@ -83,17 +91,50 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             received = [as_received(e, e.source) for e in ests]
             cams[name] = as_received(fuse_quarters(received, source=name), name)
             result.cameras[name].append(cams[name])
-        fused = fusion.process(frame_stamp, cams, wheel_twist=wheel.at(frame_stamp))
-        feedback = as_received(PoseEstimate(frame_stamp, fused.T_odom_base, fused.pose_covariance,
-                                            source='fused', state=fused.state), 'fused')
-        for qs in estimators.values():
-            for q in qs:
-                q.apply_fused_pose(frame_stamp, feedback.T_odom_base, feedback.covariance)
+        first = min(frame_stamps.values())
+        fused = fusion.process(common, cams, wheel_twist=wheel.at(first), wheel_stamp_ns=wheel.stamp_at(first))
+        command = fusion.map_scale_command     # (as the quarters get it: latched, in time)
+        if command is not None:
+            for qs in estimators.values():
+                for q in qs:
+                    q.rescale_command(command)
+        partner_gray = {}
+        for stamp in sorted(set(frame_stamps.values())):
+            T, C = fusion.pose_at(fused, stamp)
+            feedback = as_received(PoseEstimate(stamp, T, C, source='fused', state=fused.state), 'fused')
+            for name, qs in estimators.items():
+                # Stereo pairs: as a quarter node, once the partner's CameraInfo is known, the
+                # fused pose is applied with the partner's image of the same stamp (the node
+                # holds the fused pose until that image is there; absent from the bag: without)
+                partners = rig.stereo_partners(name)
+                partner = next((b for b in partners if b in intrinsics), None) if qp.stereo else None
+                gray_b = None
+                if partner is not None:
+                    if not qs[0].wants_partner_image:
+                        for q in qs:
+                            q.set_partner(rig.camera(partner), intrinsics[partner])
+                    if partner in frame and frame_stamps[partner] == stamp:
+                        if partner not in partner_gray:
+                            size = (intrinsics[partner].width, intrinsics[partner].height)
+                            partner_gray[partner] = image_msg_to_gray(frame[partner], expected_size=size)
+                        gray_b = partner_gray[partner]
+                for q in qs:
+                    if q.takes_feedback(stamp):
+                        q.apply_fused_pose(stamp, feedback.T_odom_base, feedback.covariance, gray_b)
         result.fused.append(fused)
         result.frame_ms.append((time.perf_counter() - t0) * 1e3)
         frame.clear()
+        frame_stamps.clear()
         if progress:
             progress.update(1)
+
+    def new_frame(name, stamp):
+        if not frame_stamps:
+            return False
+        if window_ns == 0:
+            return stamp != next(iter(frame_stamps.values()))
+        lo, hi = min(frame_stamps.values()), max(frame_stamps.values())
+        return name in frame or max(hi, stamp) - min(lo, stamp) > window_ns
 
     for topic, msg, _ in reader.decoded(topics):
         if topic == wheel_topic:
@@ -103,16 +144,17 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             cam = info_topic[topic]
             if cam.name not in estimators:
                 intr = intrinsics_from_msg(msg, cam.name)
+                intrinsics[cam.name] = intr
                 estimators[cam.name] = [QuarterEstimator(cam, q, intr, qp, (msg.width, msg.height), rig.floor_z)
                                         for q in quarters]
             continue
         cam = by_topic[topic]
         stamp = stamp_to_ns(msg.header.stamp)
-        if frame_stamp is not None and stamp != frame_stamp:
+        if new_frame(cam.name, stamp):
             flush()
             if max_frames and len(result.fused) >= max_frames:
                 break
-        frame_stamp = stamp
+        frame_stamps[cam.name] = stamp
         # Converted when the frame is complete: a camera's CameraInfo may follow its image
         # (the graph's quarter nodes hold such an image until the CameraInfo arrives).
         frame[cam.name] = msg

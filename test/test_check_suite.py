@@ -302,7 +302,8 @@ def test_bad_suite_is_one_line_and_exit_2(tmp_path):
     assert r.stderr.strip() == (f'ego-motion: error: {path}: bags[0] (loop): limits.drift: unknown key '
                                 '(expected one of: ate_pct, final_drift_pct, rotation_drift_deg_per_m, '
                                 'abs_scale_error_pct, odometry_share, ate_rmse_m, ate_se3_rmse_m, '
-                                'ate_sim3_rmse_m, final_drift_m, rpe_trans_pct, rpe_rot_deg_per_m)')
+                                'ate_sim3_rmse_m, ate_sim3_pct, first_odometry_s, final_drift_m, '
+                                'rpe_trans_pct, rpe_rot_deg_per_m)')
 
 
 # ---- end to end --------------------------------------------------------------------------

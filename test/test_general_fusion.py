@@ -166,7 +166,8 @@ def test_planar_motion_holds_height_and_tilt_against_cameras_that_climb():
 
     def run(planar, rig=RIG):
         rng = np.random.default_rng(4)
-        g = GeneralFusion(rig, {'planar_motion': planar})
+        # (without a floor the rig-rotation scale would rescale these made-up cameras)
+        g = GeneralFusion(rig, {'planar_motion': planar, 'rig_rotation_scale': rig.floor_z is not None})
         last = np.eye(4)
         for k in range(1, 101):
             T = last @ se3.inv_T(truth((k - 1) * 0.05)) @ truth(k * 0.05) @ step_error

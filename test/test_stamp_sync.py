@@ -45,3 +45,92 @@ def test_late_estimate_of_an_absent_source_makes_it_awaited_again():
     assert s.add('b', 20, 'B', now=2.2) == []  # late for 20, but alive again
     assert s.add('a', 30, 'A', now=2.3) == []  # so frame 30 waits for b
     assert s.add('b', 30, 'B', now=2.4)[0].items == {'a': 'A', 'b': 'B'}
+
+
+# --- free-running cameras: a window instead of identical stamps -------------------------
+MS = 1_000_000
+
+
+def test_window_groups_stamps_a_few_ms_apart_in_any_order():
+    s = StampSynchronizer(['a', 'b', 'c'], timeout_s=10.0, window_ns=30 * MS)
+    assert s.add('c', 24 * MS, 'C', now=0.0) == []       # arrival order is not stamp order
+    assert s.add('a', 0, 'A', now=0.1) == []
+    g = s.add('b', 8 * MS, 'B', now=0.2)
+    assert len(g) == 1 and g[0].items == {'a': 'A', 'b': 'B', 'c': 'C'} and not g[0].timed_out
+    assert g[0].stamp_ns == 24 * MS and g[0].first_ns == 0    # fused at the latest stamp
+    assert g[0].stamps == {'a': 0, 'b': 8 * MS, 'c': 24 * MS}
+    # the next frame (66.7 ms later) is a group of its own, even with the window open
+    assert s.add('a', 67 * MS, 'A2', now=0.3) == []
+    assert s.add('b', 75 * MS, 'B2', now=0.4) == []
+    assert s.add('c', 91 * MS, 'C2', now=0.5)[0].stamps == {'a': 67 * MS, 'b': 75 * MS, 'c': 91 * MS}
+
+
+def test_window_zero_keeps_identical_stamps_apart():
+    s = StampSynchronizer(['a', 'b'], timeout_s=1.0)
+    s.add('a', 10, 'A', now=0.0)
+    g = s.add('b', 11, 'B', now=0.1)        # 1 ns apart: two frames, and b is past frame 10
+    assert [x.stamp_ns for x in g] == [10] and g[0].missing == ['b'] and 'b' not in s.absent
+    g = s.poll(now=1.2)
+    assert [x.stamp_ns for x in g] == [11] and g[0].missing == ['a'] and g[0].timed_out
+
+
+def test_one_source_twice_in_the_window_starts_the_next_group():
+    s = StampSynchronizer(['a', 'b'], timeout_s=10.0, window_ns=50 * MS)
+    s.add('a', 0, 'A1', now=0.0)
+    s.add('a', 33 * MS, 'A2', now=0.1)                    # within the window, but a's next frame
+    g = s.add('b', 40 * MS, 'B2', now=0.2)
+    assert [x.stamps for x in g] == [{'a': 0}, {'a': 33 * MS, 'b': 40 * MS}]
+
+
+def test_slower_camera_is_not_waited_for_between_its_frames():
+    # a at 30 Hz, b at 15 Hz: after b's period is known, the groups without a frame of b are
+    # released as soon as a reported, and b is neither missing nor absent there.
+    s = StampSynchronizer(['a', 'b'], timeout_s=10.0, window_ns=5 * MS)
+    p = 33_333_333
+    released = []
+    now = 0.0
+    for k in range(8):
+        now += 0.1
+        released += s.add('a', k * p, f'a{k}', now)
+        if k % 2 == 0:
+            released += s.add('b', k * p, f'b{k}', now)
+        if k == 1:   # b's period is unknown yet: its first gap costs one timeout
+            assert released[-1].stamp_ns == 0
+            now += 10.0
+            released += s.poll(now)
+            assert released[-1].timed_out and released[-1].missing == ['b']
+            assert 'b' not in s.absent                    # maybe slower, not dead
+    assert [g.stamp_ns for g in released] == [k * p for k in range(8)]
+    assert [sorted(g.items) for g in released[2:]] == [['a', 'b'], ['a']] * 3
+    assert not any(g.timed_out or g.missing for g in released[2:])
+
+
+def test_source_reporting_once_then_silent_becomes_absent_on_its_second_miss():
+    s = StampSynchronizer(['a', 'b'], timeout_s=1.0, window_ns=5 * MS)
+    s.add('a', 0, 'A', now=0.0)
+    s.add('b', 0, 'B', now=0.0)
+    s.add('a', 100 * MS, 'A', now=0.1)
+    assert s.poll(now=1.2)[0].missing == ['b'] and 'b' not in s.absent
+    s.add('a', 200 * MS, 'A', now=1.3)
+    assert s.poll(now=2.4)[0].missing == ['b'] and 'b' in s.absent
+    assert s.add('a', 300 * MS, 'A', now=2.5)[0].missing == ['b']     # not waited for now
+
+
+def test_bad_window_is_refused():
+    import pytest
+    with pytest.raises(ValueError, match='window'):
+        StampSynchronizer(['a'], 1.0, window_ns=-1)
+
+
+def test_group_a_source_has_moved_past_is_not_waited_for():
+    # Two frames in flight: b (15 Hz, period not known yet) reports its next frame while a's
+    # frame without b is open. b's stamps only grow, so that frame is released at once.
+    p = 33_333_333
+    s = StampSynchronizer(['a', 'b'], timeout_s=10.0, window_ns=5 * MS)
+    s.add('a', 0, 'a0', now=0.0)
+    assert len(s.add('b', 0, 'b0', now=0.0)) == 1
+    assert s.add('a', p, 'a1', now=0.1) == []             # b might still come for frame 1
+    g = s.add('b', 2 * p, 'b2', now=0.2)
+    assert [x.stamp_ns for x in g] == [p] and not g[0].timed_out and 'b' not in s.absent
+    g = s.add('a', 2 * p, 'a2', now=0.3)
+    assert g[0].items == {'a': 'a2', 'b': 'b2'} and not g[0].timed_out

@@ -15,7 +15,11 @@ Two modes:
 
 A *frame* is a run of consecutive messages with the same log time: a rig driver (and the
 scenario generator) stamps and logs the images of one exposure together, so the cameras of
-one frame are always published together, before any acknowledgement is awaited.
+one frame are always published together, before any acknowledgement is awaited. Free-running
+cameras (`--sync-window S`, lockstep; the general arbiter's `sync_window_s`): a frame is the
+run of messages within S of its first, holding each trigger topic at most once, so every
+camera's image of one frame is out before the player waits for the frame's /odom (stamped
+at its latest image).
 
 Messages are published as the serialized bytes stored in the bag (rclpy's
 `Publisher.publish` accepts bytes), never decoded. Publishers are RELIABLE (they match
@@ -77,6 +81,7 @@ class PlayOptions:
     # still takes the frames in order, so the output is the same. Needs a stamped ack type.
     lockstep_depth: int = 1
     lockstep_topics: Optional[List[str]] = None   # bag topic names; None: every */image_raw
+    sync_window_s: float = 0.0    # lockstep: a frame spans this much log time (free-running cameras)
     remap: Dict[str, str] = field(default_factory=dict)  # bag topic -> published topic
     start_offset_s: float = 0.0
     duration_s: Optional[float] = None
@@ -127,11 +132,14 @@ def parse_remaps(items: Iterable[str]) -> Dict[str, str]:
     return remap
 
 
-def group_frames(messages: Iterable[BagMessage], trigger_topics) -> Iterator[Frame]:
-    """Group log-time-ordered messages into frames (runs with equal log time)."""
+def group_frames(messages: Iterable[BagMessage], trigger_topics, window_ns: int = 0) -> Iterator[Frame]:
+    """Group log-time-ordered messages into frames: runs with equal log time, or with
+    window_ns > 0, runs within window_ns of their first message that hold each trigger topic
+    at most once (free-running cameras)."""
     from multicam_ego_motion.bag.header_stamp import has_header, header_stamp_ns
     trigger_topics = set(trigger_topics)
     batch: List[BagMessage] = []
+    triggers_seen = set()
     index = 0
 
     def finish():
@@ -139,12 +147,21 @@ def group_frames(messages: Iterable[BagMessage], trigger_topics) -> Iterator[Fra
                   for m in batch if m.topic in trigger_topics]
         return Frame(index, batch[0].log_time_ns, batch, max(stamps) if stamps else None)
 
+    def starts_new(msg):
+        if window_ns <= 0:
+            return msg.log_time_ns != batch[0].log_time_ns
+        return (msg.log_time_ns - batch[0].log_time_ns > window_ns
+                or (msg.topic in trigger_topics and msg.topic in triggers_seen))
+
     for msg in messages:
-        if batch and msg.log_time_ns != batch[0].log_time_ns:
+        if batch and starts_new(msg):
             yield finish()
             index += 1
             batch = []
+            triggers_seen = set()
         batch.append(msg)
+        if msg.topic in trigger_topics:
+            triggers_seen.add(msg.topic)
     if batch:
         yield finish()
 
@@ -156,6 +173,8 @@ class BagPlayer:
         self.options = opts = options or PlayOptions()
         if opts.rate <= 0:
             raise UserError(f'--rate must be positive (got {opts.rate})')
+        if not 0.0 <= opts.sync_window_s <= 1.0:
+            raise UserError(f'--sync-window must be within 0 and 1 s (got {opts.sync_window_s})')
         if opts.lockstep_depth < 1:
             raise UserError(f'--lockstep-depth must be at least 1 (got {opts.lockstep_depth})')
         if opts.start_offset_s < 0 or (opts.duration_s is not None and opts.duration_s <= 0):
@@ -228,7 +247,10 @@ class BagPlayer:
     def frames(self) -> Iterator[Frame]:
         """The frames of the selected window and topics, in order (no ROS needed)."""
         msgs = self.reader.messages(self.topics, start_ns=self.start_ns, end_ns=self.end_ns)
-        return group_frames(msgs, self.trigger_topics)
+        # Rate mode plays by the bag's clock: each message at its own log time.
+        opts = self.options
+        window_ns = round(opts.sync_window_s * NS_PER_S) if opts.lockstep else 0
+        return group_frames(msgs, self.trigger_topics, window_ns)
 
     # ---- the rclpy shell ----------------------------------------------------------------
 
@@ -471,6 +493,10 @@ def configure_parser(parser: argparse.ArgumentParser):
                              '(default 1; 2 lets a pipelining graph work ahead)')
     parser.add_argument('--lockstep-topics', nargs='+', metavar='TOPIC',
                         help=f'lockstep trigger topics (default: every {DEFAULT_LOCKSTEP_PATTERN})')
+    parser.add_argument('--sync-window', type=float, default=0.0, metavar='S',
+                        help='lockstep, free-running cameras: images within S seconds of a '
+                             'frame\'s first are one frame (the general arbiter\'s sync_window_s; '
+                             'default 0: identical stamps)')
     parser.add_argument('--remap', nargs='+', default=[], metavar='FROM:=TO',
                         help='publish bag topic FROM as TO')
     parser.add_argument('--start-offset', type=float, default=0.0, metavar='S',
@@ -489,7 +515,7 @@ def configure_parser(parser: argparse.ArgumentParser):
 def options_from_args(args) -> PlayOptions:
     return PlayOptions(lockstep=args.lockstep, rate=args.rate, ack_topic=args.ack_topic,
                        ack_timeout_s=args.ack_timeout, lockstep_topics=args.lockstep_topics,
-                       lockstep_depth=args.lockstep_depth,
+                       lockstep_depth=args.lockstep_depth, sync_window_s=args.sync_window,
                        remap=parse_remaps(args.remap), start_offset_s=args.start_offset,
                        duration_s=args.duration, topics=args.topics, clock=args.clock,
                        progress=args.progress, discovery_s=args.discovery)

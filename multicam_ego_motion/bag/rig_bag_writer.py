@@ -6,8 +6,9 @@
   /ground_truth/odom  nav_msgs/Odometry odom -> base_link, pose in odom, twist in base_link
   /wheel/odom         nav_msgs/Odometry (optional), same frames
 
-All images of a frame carry the same header stamp; the log time of every message is its
-header stamp.
+All images of a frame carry the same header stamp (free-running cameras: each image its own
+capture instant, the frame being whichever images were written together); the log time of
+every message is its header stamp.
 """
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
@@ -70,8 +71,11 @@ class RigBagWriter:
                     _T['tf2_msgs/msg/TFMessage'](transforms=transforms), time_ns)
 
     def write_images(self, time_ns: int, images: dict):
-        """One frame: `images` maps camera name -> mono8 array; all share the stamp."""
+        """One frame: `images` maps camera name -> mono8 array; all share the stamp. Cameras
+        not in `images` have no image at this stamp (free-running or slower cameras)."""
         for cam in self.rig.cameras:
+            if cam.name not in images:
+                continue
             img = np.ascontiguousarray(images[cam.name], dtype=np.uint8)
             msg = _T['sensor_msgs/msg/Image'](
                 header=header(time_ns, cam.frame_id), height=img.shape[0], width=img.shape[1],

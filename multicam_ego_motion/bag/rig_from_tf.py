@@ -1,5 +1,7 @@
 """Build a rig from a bag when no rig file is given: extrinsics from /tf_static
-(base_link -> <cam>_optical) and camera names from the `/<cam>/image_raw` topics."""
+(base_link -> <cam>_optical) and camera names from the `/<cam>/image_raw` topics. A
+`base_footprint` frame (REP-120: the robot's projection on the ground) gives the floor:
+floor_z is its z in base_link."""
 import numpy as np
 
 from multicam_ego_motion.errors import UserError
@@ -30,4 +32,19 @@ def rig_from_bag(reader, base_frame: str = 'base_link') -> Rig:
                                 rotation_from_quaternion([rq.x, rq.y, rq.z, rq.w], f'/tf_static {frame}')))
     if not cams:
         raise UserError(f'bag {reader.path} has no */image_raw topic')
-    return Rig(cameras=cams, base_frame=base_frame)
+    return Rig(cameras=cams, base_frame=base_frame, floor_z=footprint_z(transforms, base_frame))
+
+
+def footprint_z(transforms, base_frame: str = 'base_link'):
+    """z of base_footprint in base_frame (either direction of the transform), or None."""
+    t = transforms.get('base_footprint')
+    if t is not None and t.header.frame_id == base_frame:
+        return float(t.transform.translation.z)
+    t = transforms.get(base_frame)
+    if t is not None and t.header.frame_id == 'base_footprint':
+        # base_footprint -> base_link: base_link's origin in base_footprint; the footprint
+        # lies level below it (REP-120), so its z in base_link is minus that height
+        tr, rq = t.transform.translation, t.transform.rotation
+        R = rotation_from_quaternion([rq.x, rq.y, rq.z, rq.w], f'/tf_static {base_frame}')
+        return float(-(R.T @ np.array([tr.x, tr.y, tr.z]))[2])
+    return None

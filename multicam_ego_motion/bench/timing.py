@@ -42,6 +42,9 @@ def configure_parser(p):
                    help='leave out the camera-rate row (4 x 640x480 at 30 Hz, rate mode)')
     p.add_argument('--skip-live-vs-offline', action='store_true',
                    help='leave out accuracy live vs offline (VGA at 15 and 30 Hz, lockstep and rate mode)')
+    p.add_argument('--skip-free-running', action='store_true',
+                   help='leave out free-running cameras (loop with camera offsets and mixed rates, '
+                        'lockstep and rate mode)')
     p.add_argument('--skip-worker-crash', action='store_true',
                    help='leave out the crash row (a worker killed mid-run: time to restore)')
     p.add_argument('--skip-two-hosts', action='store_true',
@@ -109,6 +112,11 @@ def run(args) -> int:
         live_off = live_vs_offline(bags_folder, out, params, live_runs=reuse)
         lines += ['', 'Accuracy live (rate mode) vs offline (lockstep), against the bag\'s ground truth; '
                   'apart = |live - offline| / offline:', ''] + live_off.lines
+
+    if not args.skip_free_running:
+        from multicam_ego_motion.bench.free_running import free_running
+        lines += ['', 'Free-running cameras, against the bag\'s ground truth (rate mode depends on '
+                  'the machine\'s load):', ''] + free_running(bags_folder, out, params)
 
     # a worker killed mid-run: time to restore, frames published again
     if not args.skip_worker_crash:

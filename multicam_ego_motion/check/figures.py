@@ -43,6 +43,8 @@ FIGURES = {
     'ate_rmse_m': Figure('ATE RMSE [m]', '{:.4f}'),
     'ate_se3_rmse_m': Figure('ATE RMSE after SE(3) fit [m]', '{:.4f}'),
     'ate_sim3_rmse_m': Figure('ATE RMSE after Sim(3) fit [m]', '{:.4f}'),
+    'ate_sim3_pct': Figure('ATE RMSE after Sim(3) fit [% of path]', '{:.3f}'),
+    'first_odometry_s': Figure('first moving /odom after [s]', '{:.3f}'),
     'final_drift_m': Figure('final drift [m]', '{:.4f}'),
     'rpe_trans_pct': Figure('RPE translation [%]', '{:.3f}'),
     'rpe_rot_deg_per_m': Figure('RPE rotation [deg/m]', '{:.4f}'),

@@ -102,6 +102,12 @@ class Coordinator:
                            if self.namespace else [])
         self.n_workers = max(1, int(workers or os.cpu_count() or 1))
         self.params_file = str(params_file) if params_file else None
+        # the quarters' `stereo` parameter: whether a stereo partner's quarters take this
+        # camera's image too (image_readers)
+        self.stereo_on = bool((overrides or {}).get('quarter', {}).get('stereo', True))
+        if params_file and 'stereo' not in (overrides or {}).get('quarter', {}):
+            from multicam_ego_motion.params_file import quarter_params_from
+            self.stereo_on = bool(quarter_params_from(params_file).get('stereo', True))
         self.log_dir = Path(log_dir or tempfile.mkdtemp(prefix='ego_motion_workers_'))
         self.log_dir.mkdir(parents=True, exist_ok=True)
         # One BLAS thread per worker: the workers are the parallelism (see cli.py).
@@ -258,10 +264,14 @@ class Coordinator:
 
     def image_readers(self, camera: str, placement=None) -> int:
         """How many subscriptions a camera's image topic has from the graph: one per worker
-        hosting any of its quarters (a worker takes each input once for all, worker.py)."""
+        hosting any of its quarters or of its stereo partners' quarters (they take its image
+        too; a worker takes each input once for all, worker.py)."""
         placement = self.placement if placement is None else placement
+        takers = {camera}
+        if self.stereo_on:
+            takers |= {c for c in self.rig.names if self.rig.stereo_partners(c)[:1] == [camera]}
         return len({w for k, w in placement.items() if self.specs[k].kind == 'quarter'
-                    and self.specs[k].parameters.get('camera') == camera})
+                    and self.specs[k].parameters.get('camera') in takers})
 
     # ---- processes and channel -----------------------------------------------------------
     def _spawn(self, h: WorkerHandle):

@@ -19,6 +19,8 @@ Python API (for `replay` and regression tests)::
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from multicam_ego_motion.evaluation.alignment import align_origin
 from multicam_ego_motion.evaluation.association import associate
 from multicam_ego_motion.evaluation.metrics import DEFAULT_RPE_DISTANCES_M, compute_metrics
@@ -45,6 +47,9 @@ def evaluate_trajectories(ref: Trajectory, est: Trajectory, max_time_diff: float
     ref, est = associate(ref, est, max_time_diff)
     ref_poses, est_poses = ref.poses(), est.poses()
     metrics = compute_metrics(ref_poses, est_poses, rpe_distances)
+    moved = np.flatnonzero(np.linalg.norm(est_poses[:, :3, 3] - est_poses[0, :3, 3], axis=1) > 0.01)
+    metrics['first_odometry_s'] = (float(est.stamps[moved[0]] - est.stamps[0]) if len(moved)
+                                   else float('nan'))
     if out_dir is not None:
         write_report(Path(out_dir), ref, est, metrics)
     return metrics

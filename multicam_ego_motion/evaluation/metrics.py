@@ -9,6 +9,10 @@ L = L_(N-1) its path length; ang(R) is the angle of a rotation (norm of its rota
   sqrt(mean_i |p'_i - q_i|^2); ate_pct = 100 ate_rmse_m / L (the issue's "% of path length").
 * ate_se3_rmse_m, ate_sim3_rmse_m: the same after a least-squares Umeyama fit of the
   positions, rigid (SE(3)) and rigid plus scale (Sim(3)).
+* ate_sim3_pct: ate_sim3_rmse_m in % of the path (the figure of a run without a scale
+  source before it was measured: its shape, whatever its scale).
+* first_odometry_s (evaluate_trajectories): seconds from the first pose to the first estimate
+  that moved 1 cm from its start (odometry that stays at the origin does not count).
 * sim3_scale: the Sim(3) factor s with q ~ s R p + t; scale_error_pct = 100 (1/s - 1): the
   estimate's scale error, +2 when it measures every distance 2 % too long.
 * final_drift_m = |p'_(N-1) - q_(N-1)|, final_drift_pct = 100 final_drift_m / L.
@@ -99,6 +103,7 @@ def compute_metrics(ref_poses, est_poses, rpe_distances=DEFAULT_RPE_DISTANCES_M)
         'ate_pct': 100.0 * per_metre(ate_m),
         'ate_se3_rmse_m': rmse(translation_errors(ref_poses, align_se3(est_poses, ref_poses))),
         'ate_sim3_rmse_m': rmse(translation_errors(ref_poses, sim3)),
+        'ate_sim3_pct': 100.0 * per_metre(rmse(translation_errors(ref_poses, sim3))),
         'sim3_scale': scale,
         'scale_error_pct': 100.0 * (1.0 / scale - 1.0),
         'final_drift_m': final_m,

@@ -6,7 +6,7 @@ Intrinsics are not here: they come from each camera's CameraInfo.
 """
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 import numpy as np
 import yaml
@@ -49,6 +49,22 @@ class Rig:
     # the floor, REP-105's base_footprint); None: no such floor (a car rig whose base_link is
     # at a tilted camera, a handheld rig). Floor landmarks and planar motion need it.
     floor_z: Optional[float] = None
+    # The floor is level everywhere (a building: the base never climbs or tilts, which the
+    # general arbiter's planar_motion assumes), or only locally flat (a road with slopes:
+    # floor landmarks still hold, planar motion does not).
+    floor_level: bool = True
+    # Cameras whose fields of view overlap (a stereo pair), as (name, name): each one's
+    # quarters match their tracks into the other's image and triangulate metric landmarks
+    # from a single frame (camera_pose_nodes/stereo_match.py). Named in the rig file, or
+    # found from the extrinsics and CameraInfos when the file does not name any
+    # (detect_stereo; stereo_match.overlapping_pairs).
+    stereo_pairs: Tuple[Tuple[str, str], ...] = ()
+    # False when the rig file names stereo_pairs (even an empty list): named pairs win
+    detect_stereo: bool = True
+
+    def stereo_partners(self, name: str) -> List[str]:
+        """The cameras named with `name` in a stereo pair, in pair order."""
+        return [b if a == name else a for a, b in self.stereo_pairs if name in (a, b)]
 
     def camera(self, name: str) -> CameraMount:
         for c in self.cameras:
@@ -64,6 +80,10 @@ class Rig:
         d = {'base_frame': self.base_frame}
         if self.floor_z is not None:
             d['floor_z'] = float(self.floor_z)
+            if not self.floor_level:
+                d['floor_level'] = False
+        if self.stereo_pairs or not self.detect_stereo:
+            d['stereo_pairs'] = [list(p) for p in self.stereo_pairs]
         d['cameras'] = [c.to_dict() for c in self.cameras]
         return d
 
@@ -73,7 +93,10 @@ class Rig:
             f.write('# Camera rig: extrinsics base_link -> <camera>_optical (REP-103/105).\n'
                     '# translation: camera centre in base_link (m); rotation_xyzw: the optical\n'
                     '# frame (z forward, x right, y down) expressed in base_link.\n'
-                    '# floor_z (optional): the level floor the base stands on, z in base_link.\n'
+                    '# floor_z (optional): the floor the base stands on, z in base_link;\n'
+                    '# floor_level (optional, default true): false for a road with slopes.\n'
+                    '# stereo_pairs (optional): [[left, right], ...] cameras whose views overlap;\n'
+                    '# without it, overlapping pairs are found from the extrinsics and intrinsics.\n'
                     '# Intrinsics come from each camera\'s CameraInfo.\n')
             yaml.safe_dump(self.to_dict(), f, sort_keys=False)
 
@@ -133,7 +156,39 @@ def parse_rig(data: dict, source: str = 'rig') -> Rig:
             floor_z = float('nan')
         if not np.isfinite(floor_z):
             raise UserError(f'{source}: floor_z must be a finite number (m), got {data["floor_z"]!r}')
-    return Rig(cameras=cams, base_frame=data.get('base_frame', 'base_link'), floor_z=floor_z)
+    floor_level = data.get('floor_level', True)
+    if not isinstance(floor_level, bool):
+        raise UserError(f'{source}: floor_level must be true or false, got {floor_level!r}')
+    named = 'stereo_pairs' in data
+    pairs = parse_stereo_pairs(data.get('stereo_pairs'), [c.name for c in cams], source) if named else ()
+    return Rig(cameras=cams, base_frame=data.get('base_frame', 'base_link'), floor_z=floor_z,
+               floor_level=floor_level, stereo_pairs=pairs, detect_stereo=not named)
+
+
+def parse_stereo_pairs(value, names, source: str = 'rig') -> Tuple[Tuple[str, str], ...]:
+    """[[a, b], ...] -> ((a, b), ...): names of the rig's cameras, two distinct ones per
+    pair, no pair twice (in either order)."""
+    if value is None:
+        return ()
+    if not isinstance(value, list):
+        raise UserError(f'{source}: stereo_pairs must be a list of [camera, camera] pairs, got {value!r}')
+    pairs, seen = [], set()
+    for i, p in enumerate(value):
+        if not (isinstance(p, (list, tuple)) and len(p) == 2 and all(isinstance(n, str) for n in p)):
+            raise UserError(f'{source}: stereo_pairs entry {i + 1} must be [camera, camera] '
+                            f'(two camera names), got {p!r}')
+        a, b = p
+        for n in (a, b):
+            if n not in names:
+                raise UserError(f'{source}: stereo_pairs entry {i + 1} names camera {n!r}, '
+                                f'which the rig does not have (it has: {", ".join(names)})')
+        if a == b:
+            raise UserError(f'{source}: stereo_pairs entry {i + 1} pairs camera {a!r} with itself')
+        if frozenset(p) in seen:
+            raise UserError(f'{source}: stereo_pairs names the pair {a!r}, {b!r} twice')
+        seen.add(frozenset(p))
+        pairs.append((a, b))
+    return tuple(pairs)
 
 
 def load_rig(path) -> Rig:

@@ -39,8 +39,20 @@ def configure_parser(p):
     p.add_argument('--k1', type=float, default=0.0, help='radial distortion (plumb_bob k1)')
     p.add_argument('--cameras', type=int, default=4,
                    help='1..8 level cameras, evenly spaced headings; 4 = the paper rig')
+    p.add_argument('--rig', choices=('ring', 'stereo'), default='ring',
+                   help='ring: --cameras level cameras at evenly spaced headings (default); '
+                        'stereo: a forward-looking stereo pair left/right, named in stereo_pairs')
+    p.add_argument('--baseline', type=float, default=0.3,
+                   help='--rig stereo: distance between the two cameras (m, default 0.3)')
     p.add_argument('--rig-out', default=None, help='also write the rig YAML here')
     p.add_argument('--compression', choices=('zstd', 'lz4', 'none'), default='zstd')
+    p.add_argument('--camera-offsets-ms', default=None, metavar='MS,MS,...',
+                   help='free-running cameras: each camera\'s capture time after the frame '
+                        'clock, one value per camera in rig order (e.g. 0,8,16,24); each image '
+                        'is rendered at and stamped with its own capture instant')
+    p.add_argument('--camera-rates', default=None, metavar='HZ,HZ,...',
+                   help='per-camera frame rates, one value per camera in rig order (e.g. '
+                        '30,30,15,15; default: --rate for every camera); the wheel stays at --rate')
 
 
 def evenly_spaced_rig(n: int, radius: float = 0.25) -> Rig:
@@ -58,6 +70,17 @@ def evenly_spaced_rig(n: int, radius: float = 0.25) -> Rig:
                                 np.array([radius * np.cos(yaw), radius * np.sin(yaw), CAMERA_HEIGHT]),
                                 optical_rotation(yaw)))
     return Rig(cameras=cams, floor_z=0.0)     # the renderer's floor is base_link's z = 0
+
+
+def stereo_pair_rig(baseline: float) -> Rig:
+    """Two level cameras looking forward, `baseline` apart (left at +y), base_link midway
+    between them on the floor; named as a stereo pair."""
+    if not 0.01 <= baseline <= 5.0:
+        raise UserError(f'--baseline must be within 0.01..5 m, got {baseline}')
+    cams = [CameraMount(name, f'/{name}/image_raw', f'/{name}/camera_info', f'{name}_optical',
+                        np.array([0.0, y, CAMERA_HEIGHT]), optical_rotation(0.0))
+            for name, y in (('left', 0.5 * baseline), ('right', -0.5 * baseline))]
+    return Rig(cameras=cams, floor_z=0.0, stereo_pairs=(('left', 'right'),))
 
 
 def check_output_free(path: Path):
@@ -78,6 +101,48 @@ def validate(args):
         raise UserError(f'--fx must be positive, got {args.fx}')
     if not -0.5 <= args.k1 <= 0.5:
         raise UserError(f'--k1 must be within -0.5..0.5, got {args.k1}')
+    n = rig_camera_count(args)
+    camera_timing(n, args.rate, parse_camera_list(args.camera_offsets_ms, n, '--camera-offsets-ms'),
+                  parse_camera_list(args.camera_rates, n, '--camera-rates'))
+
+
+def rig_camera_count(args) -> int:
+    """Cameras of the rig the options make (a stereo pair is two, whatever --cameras says)."""
+    return 2 if getattr(args, 'rig', 'ring') == 'stereo' else args.cameras
+
+
+def parse_camera_list(text, cameras: int, option: str):
+    """'0,8,16,24' -> [0.0, 8.0, 16.0, 24.0] (None: not given); camera_timing checks the count."""
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in str(text).split(',')]
+    except ValueError:
+        raise UserError(f'{option} must be comma-separated numbers, got {text!r}') from None
+    if not all(np.isfinite(values)):
+        raise UserError(f'{option} must be finite numbers, got {text!r}')
+    return values
+
+
+def camera_timing(cameras: int, rate: float, offsets_ms=None, rates=None):
+    """(offsets s, rates Hz) per camera, checked: a per-camera rate within 1..120 Hz (the
+    frame rate itself is checked by the CLI; the library renders sparse stills too), an
+    offset within [0, its camera's frame period)."""
+    for option, values in (('--camera-offsets-ms', offsets_ms), ('--camera-rates', rates)):
+        if values is not None and len(values) != cameras:
+            raise UserError(f'{option} has {len(values)} value(s) but the rig has {cameras} cameras '
+                            '(one value per camera, in rig order)')
+    given = rates is not None
+    rates = [float(rate)] * cameras if rates is None else [float(r) for r in rates]
+    offsets_ms = [0.0] * cameras if offsets_ms is None else [float(o) for o in offsets_ms]
+    for k, r in enumerate(rates):
+        if given and not 1 <= r <= 120:
+            raise UserError(f'--camera-rates: camera {k} rate must be between 1 and 120 Hz, got {r:g}')
+    for k, (o, r) in enumerate(zip(offsets_ms, rates)):
+        if not 0 <= o < 1000.0 / r:
+            raise UserError(f'--camera-offsets-ms: camera {k} offset must be within 0 and its '
+                            f'frame period ({1000.0 / r:g} ms at {r:g} Hz), got {o:g} ms')
+    return [o * 1e-3 for o in offsets_ms], rates
 
 
 def pose_matrix(x, y, yaw):
@@ -88,66 +153,100 @@ def pose_matrix(x, y, yaw):
 
 
 def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=480, fx=None,
-             k1=0.0, cameras=4, rig_out=None, compression='zstd', progress=True):
-    """Render the bag; returns a summary dict (frames, seconds, bag size)."""
+             k1=0.0, cameras=4, rig_out=None, compression='zstd', progress=True,
+             rig_kind='ring', baseline=0.3, camera_offsets_ms=None, camera_rates=None):
+    """Render the bag; returns a summary dict (frames, seconds, bag size).
+
+    camera_offsets_ms / camera_rates (one per camera): free-running cameras, each captured
+    at offset + n / rate; ground truth is written at every capture instant (and at the
+    wheel's), the wheel at `rate` as for a synchronised rig."""
     out = Path(out)
     check_output_free(out)
-    rig = evenly_spaced_rig(cameras)
+    if rig_kind not in ('ring', 'stereo'):
+        raise UserError(f'unknown rig {rig_kind!r} (ring or stereo)')
+    rig = stereo_pair_rig(baseline) if rig_kind == 'stereo' else evenly_spaced_rig(cameras)
     intr = CameraIntrinsics.default(width, height, k1)
     if fx is not None:
         intr = CameraIntrinsics(width, height, fx, fx, intr.cx, intr.cy, intr.distortion)
     texture_seed, noise_seed, wheel_seed = np.random.SeedSequence(seed).spawn(3)
 
+    offsets, rates = camera_timing(len(rig.cameras), rate, camera_offsets_ms, camera_rates)
     trajectory = SCENARIOS[scenario](duration)
     n_frames = int(round(duration * rate)) + 1     # both ends: a closed loop ends at its start
     times = np.arange(n_frames) / rate
-    x, y, yaw, speed, yaw_rate = trajectory.sample(times)
+    wheel_stamps = STAMP_EPOCH_NS + np.round(times * 1e9).astype(np.int64)
+    # Capture instants per camera (a synchronised rig: every camera at the wheel's times).
+    captures = {}
+    for cam, offset, r in zip(rig.cameras, offsets, rates):
+        # (as many frames as a synchronised camera: the last frame has every camera, a little
+        # after the end for a late one, where the trajectory holds its end pose)
+        t_cam = offset + np.arange(int(round(duration * r)) + 1) / r
+        for t, stamp in zip(t_cam, STAMP_EPOCH_NS + np.round(t_cam * 1e9).astype(np.int64)):
+            captures.setdefault(int(stamp), (t, []))[1].append(cam.name)
+    for t, stamp in zip(times, wheel_stamps):
+        captures.setdefault(int(stamp), (t, []))
+    stamps = sorted(captures)
+    event_times = np.array([captures[s][0] for s in stamps])
+    x, y, yaw, speed, yaw_rate = trajectory.sample(event_times)
+    _, _, _, wheel_speed, wheel_yaw_rate = trajectory.sample(times)
     T_world_start_inv = np.linalg.inv(pose_matrix(*trajectory.start_pose()))
     wheel = WheelOdometry(np.random.default_rng(wheel_seed))
-    wheel_v, wheel_w = wheel.measure(speed, yaw_rate)
+    wheel_v, wheel_w = wheel.measure(wheel_speed, wheel_yaw_rate)
     wx, wy, wyaw = wheel.dead_reckon(times, wheel_v, wheel_w)
-    stamps = STAMP_EPOCH_NS + np.round(times * 1e9).astype(np.int64)
+    wheel_index = {int(s): i for i, s in enumerate(wheel_stamps)}
 
     scene = scene_for(scenario)
     atlas = TextureAtlas(scene, np.random.default_rng(texture_seed))
-    renderers = [CameraRenderer(scene, atlas, intr, cam) for cam in rig.cameras]
+    renderers = {cam.name: CameraRenderer(scene, atlas, intr, cam) for cam in rig.cameras}
     effects = (LightingEffects(np.random.default_rng(noise_seed), intr.fx)
                if scenario == 'lighting' else None)
 
     started = time.perf_counter()
+    images_written = 0
     with RigBagWriter(out, rig, {c.name: intr for c in rig.cameras}, compression) as bag:
         bag.write_static_transforms(int(stamps[0]))
-        for i in tqdm(range(n_frames), unit='frame', desc=f'{scenario}', disable=not progress):
-            images = {}
-            for k, (cam, r) in enumerate(zip(rig.cameras, renderers)):
-                img = r.render(x[i], y[i], yaw[i])
-                if effects is not None:
-                    img = effects.apply(img, times[i], k, yaw_rate[i])
-                images[cam.name] = img
+        for i in tqdm(range(len(stamps)), unit='frame', desc=f'{scenario}', disable=not progress):
             stamp = int(stamps[i])
-            bag.write_images(stamp, images)
+            images = {}
+            for k, cam in enumerate(rig.cameras):
+                if cam.name not in captures[stamp][1]:
+                    continue
+                img = renderers[cam.name].render(x[i], y[i], yaw[i])
+                if effects is not None:
+                    img = effects.apply(img, event_times[i], k, yaw_rate[i])
+                images[cam.name] = img
+            if images:
+                bag.write_images(stamp, images)
+                images_written += len(images)
             bag.write_odometry('/ground_truth/odom', stamp,
                                T_world_start_inv @ pose_matrix(x[i], y[i], yaw[i]),
                                (speed[i], 0.0, 0.0), (0.0, 0.0, yaw_rate[i]),
                                GROUND_TRUTH_POSE_VAR, GROUND_TRUTH_TWIST_VAR)
-            bag.write_odometry('/wheel/odom', stamp, pose_matrix(wx[i], wy[i], wyaw[i]),
-                               (wheel_v[i], 0.0, 0.0), (0.0, 0.0, wheel_w[i]),
-                               *wheel.variances(times[i], wx[i], wy[i], wheel_v[i], wheel_w[i]))
+            j = wheel_index.get(stamp)
+            if j is not None:
+                bag.write_odometry('/wheel/odom', stamp, pose_matrix(wx[j], wy[j], wyaw[j]),
+                                   (wheel_v[j], 0.0, 0.0), (0.0, 0.0, wheel_w[j]),
+                                   *wheel.variances(times[j], wx[j], wy[j], wheel_v[j], wheel_w[j]))
     elapsed = time.perf_counter() - started
     rig.save(out / 'rig.yaml')
     if rig_out:
         rig.save(rig_out)
     size = sum(f.stat().st_size for f in out.iterdir())
-    return {'frames': n_frames, 'seconds': elapsed, 'fps': n_frames / elapsed, 'bytes': size,
+    return {'frames': n_frames, 'images': images_written, 'seconds': elapsed,
+            'fps': n_frames / elapsed, 'bytes': size,
             'path_length': trajectory.path_length, 'cameras': rig.names}
 
 
 def run(args) -> int:
     logging.basicConfig(level=logging.INFO, format='%(levelname)s %(name)s: %(message)s')
     validate(args)
+    n_cameras = rig_camera_count(args)
     summary = generate(args.scenario, args.out, args.seed, args.duration, args.rate, args.width,
                        args.height, args.fx, args.k1, args.cameras, args.rig_out,
-                       args.compression)
+                       args.compression, rig_kind=args.rig, baseline=args.baseline,
+                       camera_offsets_ms=parse_camera_list(args.camera_offsets_ms, n_cameras,
+                                                           '--camera-offsets-ms'),
+                       camera_rates=parse_camera_list(args.camera_rates, n_cameras, '--camera-rates'))
     print(f'{args.out}: {summary["frames"]} frames x {len(summary["cameras"])} cameras '
           f'({", ".join(summary["cameras"])}), path {summary["path_length"]:.1f} m, '
           f'rendered and written in {summary["seconds"]:.1f} s ({summary["fps"]:.1f} frames/s), '

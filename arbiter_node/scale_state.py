@@ -1,0 +1,163 @@
+"""The map's scale as part of the general arbiter's state (ROS-free).
+
+Which source fixes the scale: stereo (the rig names stereo_pairs), the floor (the rig's
+floor_z: the quarters put floor landmarks at metric depth), the wheel (its twist prior), else
+the rig's rotation (rig_scale: in a turn, the cameras' translation directions and their metric
+lever arms give the body's metric translation) and, before the first turn, none: the map is
+then in the quarters' two-view gauge (camera_pose_nodes/two_view) and its scale unknown.
+
+Only without stereo, floor and wheel does this state act: it keeps the log of the factor that
+takes the map to metres, x = log k, with its variance P (P = 1: unknown). Every window of
+frames over which the body turned `scale_window_rotation_rad` gives an observation of k
+(rig_scale.solve_rig_translation against the fused translation over the window, its relative
+std as the observation's std). Once P is small enough the map is rescaled (the "snap"): a
+MapScaleCommand multiplies every position by k, from the next frame, in the general arbiter
+and in every quarter (camera_pose_nodes/map_scale), and x returns to 0 with P kept. Later
+turns keep tightening P and snap again when the factor has moved `scale_snap_min_change` (and one std); the map's own
+scale drift (`scale_drift_per_sqrt_s`) keeps P from shrinking to nothing, so later turns
+still correct it.
+
+/odom's position covariance carries the scale's uncertainty: P p p^T added for the position
+p (about the rescale centre), so it is as large as the distance travelled along the travel
+while the scale is unknown.
+"""
+import math
+from collections import deque
+from typing import Dict, Optional
+
+import numpy as np
+
+from arbiter_node.rig_scale import relative_motion, scale_correction, solve_rig_translation
+from camera_pose_nodes.map_scale import MapScaleCommand, scale_positions
+from multicam_ego_motion.geometry import se3
+
+SOURCES = ('none', 'rig rotation', 'floor', 'wheel', 'stereo')
+
+
+def metric_source(rig, wheel_seen: bool) -> Optional[str]:
+    """The scale source other than the rig's rotation, or None."""
+    if tuple(getattr(rig, 'stereo_pairs', ()) or ()):
+        return 'stereo'
+    if rig.floor_z is not None:
+        return 'floor'
+    if wheel_seen:
+        return 'wheel'
+    return None
+
+
+def rescale_body_ekf(ekf, k: float, centre):
+    """BodyEKF: position about centre, linear velocity (base_link) and their covariance by k."""
+    x = ekf.kf.x
+    x[0:3, 0] = scale_positions(x[0:3, 0], k, centre)
+    x[6:9, 0] = k * x[6:9, 0]
+    s = np.ones(12)
+    s[0:3] = k
+    s[6:9] = k
+    ekf.kf.P = ekf.kf.P * s[:, None] * s[None, :]
+
+
+class ScaleState:
+    def __init__(self, rig, params: dict):
+        self.rig = rig
+        self.p = params
+        self.x = 0.0                                   # log of map -> metric factor
+        self.P = float(params['scale_unknown_relative_std']) ** 2
+        self.observed = False                          # rig rotation has observed it
+        self.epoch = 0
+        self.command: Optional[MapScaleCommand] = None  # the latest, for the quarters
+        self.pending: Optional[MapScaleCommand] = None  # not yet applied here
+        self.history = deque()                         # (stamp, T fused, {camera: centre in odom})
+        self.window_start = None                       # stamp: windows do not overlap
+        self.last_ratio: Optional[float] = None
+        self.snapped_about = np.zeros(3)               # centre of the position covariance term
+
+    @property
+    def relative_std(self) -> float:
+        return math.sqrt(self.P)
+
+    # ------------------------------------------------------------------ per frame
+    def apply_pending(self, stamp_ns: int, ekf, fusion) -> bool:
+        """The rescale decided last frame, at this frame (after its cameras were fused)."""
+        c = self.pending
+        if c is None or stamp_ns < c.from_ns:
+            return False
+        self.pending = None
+        rescale_body_ekf(ekf, c.factor, c.centre)
+        fusion.last_T = fusion.last_T.copy()
+        fusion.last_T[:3, 3] = scale_positions(fusion.last_T[:3, 3], c.factor, c.centre)
+        for _, T, centres in self.history:
+            T[:3, 3] = scale_positions(T[:3, 3], c.factor, c.centre)
+            for n in centres:
+                centres[n] = scale_positions(centres[n], c.factor, c.centre)
+        return True
+
+    def observe(self, stamp_ns: int, T_now: np.ndarray, cameras: Dict[str, np.ndarray]):
+        """Record this frame (fused pose; informative cameras' body poses) and, when the body
+        turned enough since the window's start, observe the scale over that window."""
+        p = self.p
+        if self.observed and self.history:
+            # the map's own scale drifts (monocular): the estimate must follow it
+            self.P += p['scale_drift_per_sqrt_s'] ** 2 * max(0.0, (stamp_ns - self.history[-1][0]) * 1e-9)
+        centres = {}
+        for cam in self.rig.cameras:
+            T = cameras.get(cam.name)
+            if T is not None:
+                centres[cam.name] = (T @ cam.T_base_cam)[:3, 3].copy()
+        self.history.append((int(stamp_ns), T_now.copy(), centres))
+        max_ns = p['scale_window_max_s'] * 1e9
+        while self.history and stamp_ns - self.history[0][0] > max_ns:
+            self.history.popleft()
+        R_now = T_now[:3, :3]
+        for s, T, c0 in reversed(list(self.history)[:-1]):
+            if self.window_start is not None and s < self.window_start:
+                break
+            angle = float(np.linalg.norm(se3.R_to_rotvec(T[:3, :3].T @ R_now)))
+            if angle < p['scale_window_rotation_rad']:
+                continue
+            self.window_start = int(stamp_ns)
+            R, t_map = relative_motion(T, T_now)
+            dirs, names = [], []
+            for cam in self.rig.cameras:
+                if cam.name in c0 and cam.name in centres:
+                    dirs.append(T[:3, :3].T @ (centres[cam.name] - c0[cam.name]))
+                else:
+                    dirs.append(None)
+            r = solve_rig_translation(R, dirs, [c.translation for c in self.rig.cameras],
+                                      direction_sigma_rad=p['scale_direction_sigma_rad'],
+                                      min_rotation_rad=p['scale_min_rotation_rad'],
+                                      max_relative_std=p['scale_max_relative_std'],
+                                      names=self.rig.names)
+            k = scale_correction(t_map, r)
+            if k is None:
+                return
+            z, Rz = math.log(k), max(r.relative_std, 1e-3) ** 2
+            if self.observed and (z - self.x) ** 2 > 9.0 * (self.P + Rz):
+                return         # one window against all before: a bad one (gated)
+            g = self.P / (self.P + Rz)
+            self.x += g * (z - self.x)
+            self.P *= (1.0 - g)
+            self.observed = True
+            self.last_ratio = k
+            return
+
+    def decide(self, stamp_ns: int, T_now: np.ndarray) -> Optional[MapScaleCommand]:
+        """A rescale command, from the next frame on, when the scale is known well enough
+        (and, after the first, when it moved enough)."""
+        p = self.p
+        if not self.observed or self.pending is not None or self.relative_std > p['scale_snap_relative_std']:
+            return None
+        if self.epoch > 0 and abs(self.x) < max(p['scale_snap_min_change'], self.relative_std):
+            return None
+        centre = (0.0, 0.0, 0.0) if p['scale_snap_about'] == 'origin' else tuple(float(v) for v in T_now[:3, 3])
+        self.epoch += 1
+        self.command = MapScaleCommand(int(stamp_ns) + 1, self.epoch, math.exp(self.x), centre)
+        self.pending = self.command
+        self.x = 0.0
+        self.snapped_about = np.asarray(centre, float)
+        return self.command
+
+    def odom_covariance(self, T: np.ndarray, pose_cov: np.ndarray) -> np.ndarray:
+        d = T[:3, 3] - self.snapped_about
+        C = pose_cov.copy()
+        C[:3, :3] += self.P * np.outer(d, d)
+        return C

@@ -1,0 +1,101 @@
+"""Start without a scale source: the generated loop (the accuracy suite's settings) replayed
+through the whole graph (lockstep, 2 workers) without the wheel and with a rig without
+floor_z. Nothing but the cameras then: the quarters start from two views, the map is in the
+nominal-speed gauge until the first turn, then the rig's rotation measures the scale and the
+map is rescaled (docs/estimator.md, start without a scale source)."""
+import math
+
+import numpy as np
+import pytest
+import yaml
+
+from conftest import run_cli
+from replay_run import ground_truth, replay
+from multicam_ego_motion.evaluation.evaluate import evaluate_trajectories
+from multicam_ego_motion.evaluation.trajectory_io import Trajectory
+
+FRAMES = 20 * 8 + 1
+
+
+@pytest.fixture(scope='module')
+def run(tmp_path_factory):
+    root = tmp_path_factory.mktemp('no_scale')
+    bag = root / 'loop'
+    r = run_cli('generate', '--scenario', 'loop', '--seed', 7, '--duration', 20, '--rate', 8,
+                '--width', 320, '--height', 240, '--fx', 200, '--out', bag, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    rig = yaml.safe_load((bag / 'rig.yaml').read_text())
+    rig.pop('floor_z')
+    (root / 'rig_no_floor.yaml').write_text(yaml.safe_dump(rig))
+    run = replay(bag, root / 'out', '--no-wheel', '--rig', root / 'rig_no_floor.yaml', timeout=900)
+    assert run.returncode == 0, run
+    return run
+
+
+@pytest.fixture(scope='module')
+def metrics(run):
+    stamps, T, _, _ = run.odometry()
+    gt = ground_truth(run.bag, run.start_ns)
+    ref = Trajectory.from_poses(list(gt), list(gt.values()))
+    return evaluate_trajectories(ref, Trajectory.from_poses(stamps, T))
+
+
+def test_odometry_from_the_first_second_and_never_frozen(run, metrics):
+    stamps, T, _, _ = run.odometry()
+    assert len(stamps) == FRAMES
+    assert metrics['first_odometry_s'] <= 1.0, metrics['first_odometry_s']
+    states = [d.values['state'] for d in run.diagnostics('ego_motion/general_arbiter') if d.t > 1.0]
+    assert states and all(s != 'initializing' for s in states), sorted(set(states))
+    # wherever the rig drives, /odom moves on
+    gt = ground_truth(run.bag, run.start_ns)
+    late = np.flatnonzero(stamps > 1.0)
+    g = np.array([gt[round(t, 6)][:3, 3] for t in stamps[late]])
+    driving = np.linalg.norm(np.diff(g, axis=0), axis=1) > 0.02
+    step = np.linalg.norm(np.diff(T[late, :3, 3], axis=0), axis=1)
+    assert driving.sum() > 100 and np.all(step[driving] > 1e-3)
+
+
+def test_shape_and_metric_scale(metrics):
+    assert metrics['ate_sim3_pct'] <= 1.0, metrics
+    assert abs(metrics['scale_error_pct']) <= 2.0, metrics
+
+
+def test_diagnostics_and_covariance_tell_the_scale(run):
+    diags = run.diagnostics('ego_motion/general_arbiter')
+    sources = [(d.t, d.values['scale_source'], float(d.values['scale_relative_std'])) for d in diags]
+    assert sources[0][1] == 'none' and sources[0][2] == pytest.approx(1.0)
+    turned = [t for t, s, _ in sources if s == 'rig rotation']
+    assert turned, 'the rig rotation never fixed the scale'
+    assert all(s == 'rig rotation' for t, s, _ in sources if t >= turned[0])
+    assert all(std <= 0.1 for t, s, std in sources if t >= turned[0])
+    # Before: /odom's position covariance along the travel is as large as the travel.
+    stamps, T, P, _ = run.odometry()
+    i = int(np.flatnonzero((stamps > 1.5) & (stamps < turned[0]))[-1])
+    d = T[i, :3, 3]
+    assert d @ P[i, :3, :3] @ d / (d @ d) >= 0.5 * (d @ d)
+    j = len(stamps) - 1
+    d = T[j, :3, 3]
+    assert math.sqrt(d @ P[j, :3, :3] @ d / (d @ d)) <= 0.1 * np.linalg.norm(d)
+
+
+def test_the_map_was_rescaled_from_a_frame_on(run):
+    commands = [m.data for _, m in run.messages('/ego_motion/map_scale')]
+    assert commands and [int(c[1]) for c in commands] == list(range(1, len(commands) + 1))
+
+
+def test_the_sequential_pipeline_gives_the_graphs_odometry(run, tmp_path):
+    # the rescale is applied at a defined frame in every node: lockstep = sequential, bit for bit
+    from multicam_ego_motion.geometry.rig import load_rig
+    from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
+    from multicam_ego_motion.ros_plumbing.package_share import default_params
+    from multicam_ego_motion.ros_plumbing.pose_messages import estimate_to_msg, msg_to_estimate
+    from multicam_ego_motion.sequential_pipeline import run_sequential
+    from camera_pose_nodes.pose_estimate import PoseEstimate
+    pf = default_params()
+    res = run_sequential(run.bag, load_rig(run.out.parent / 'rig_no_floor.yaml'),
+                         quarter_params_from(pf), fusion_params_from(pf), use_wheel=False)
+    _, T, _, _ = run.odometry()
+    seq = np.array([msg_to_estimate(estimate_to_msg(PoseEstimate(f.stamp_ns, f.T_odom_base,
+                                                                 f.pose_covariance))).T_odom_base
+                    for f in res.fused])
+    assert np.array_equal(seq, T)
