@@ -4,9 +4,8 @@ they change.
 Why: rclpy's SingleThreadedExecutor gathers every entity of every node into a new wait set,
 in Python, before each wait (contexts entered, filters, a WaitSet object), and wraps every
 callback in a Task whose end triggers the executor's guard condition, so each callback costs
-one more wait that finds nothing. A worker hosting eight quarters and the arbiters waited
-6-7 times per frame at about 0.5 ms of CPU each: 3-4 ms per frame and worker, a third of the
-graph's transport overhead. Here the entity lists and the pointer -> entity maps are built
+one more wait that finds nothing (10-13 waits per frame and worker at M = 2; docs/transport.md
+has what that measured to). Here the entity lists and the pointer -> entity maps are built
 once per change of the nodes (add_node, remove_node, an entity created or destroyed: rclpy
 calls wake() then), a wait only re-adds the cached handles to a reused wait set, and ready
 callbacks are called directly.
