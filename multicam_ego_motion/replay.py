@@ -38,6 +38,9 @@ def configure_parser(p):
                         'the odometry is the same for any N)')
     p.add_argument('--migrate-every', type=int, default=0, metavar='K',
                    help='debug (lockstep): move one quarter node to the next worker every K frames')
+    p.add_argument('--kill-worker-at', type=int, default=None, metavar='N',
+                   help='debug (lockstep): SIGKILL the last worker once N frames were acknowledged, '
+                        'as a crash would (a crash-recovery drill at a chosen frame)')
     p.add_argument('--sync-window', type=float, default=None, metavar='S',
                    help='free-running cameras: images within S seconds are one frame, fused at '
                         'its latest stamp (the general arbiter\'s sync_window_s, and the lockstep '
@@ -265,6 +268,8 @@ def _killing(coordinator, at_frame):
         if not done and frame_index >= at_frame:
             done.append(coordinator.workers[-1].proc.pid)
             os.kill(done[0], signal.SIGKILL)
+            print(f'replay: killed worker {len(coordinator.workers) - 1} (pid {done[0]}) after frame '
+                  f'{frame_index}', flush=True)
         coordinator.between_frames(frame_index)
     return between
 
@@ -423,6 +428,8 @@ def run(args) -> int:
     remote = remote_options(args)
     if args.migrate_every and not lockstep:
         raise UserError('--migrate-every needs lockstep replay')
+    if args.kill_worker_at is not None and (not lockstep or args.kill_worker_at < 1):
+        raise UserError('--kill-worker-at needs lockstep replay and a frame number >= 1')
     print(f'replay: {args.bag} ({", ".join(rig.names)}; '
           f'{"lockstep" if lockstep else f"rate {args.rate}"}; {args.workers} workers; '
           f'ROS_DOMAIN_ID={os.environ["ROS_DOMAIN_ID"]})', flush=True)
@@ -435,7 +442,8 @@ def run(args) -> int:
                   start_offset=args.start_offset, duration=args.duration,
                   migrate_every=args.migrate_every, rebalance=not args.no_rebalance,
                   logger=lambda t: print(t, flush=True), lockstep_depth=args.lockstep_depth,
-                  debug_images=args.debug_images, sync_window_s=args.sync_window, remote=remote)
+                  debug_images=args.debug_images, sync_window_s=args.sync_window, remote=remote,
+                  kill_worker_at=args.kill_worker_at)
     st = g.coordinator.stats
     print(f'coordinator: {st.migrations} migrations ({st.rebalances} rebalances), '
           f'{st.restarts} worker restarts'

@@ -4,8 +4,6 @@ and its accuracy stays within 10 % of an uninterrupted run. No worker process ou
 run, killed or not."""
 import os
 import re
-import signal
-import threading
 import time
 import uuid
 from pathlib import Path
@@ -14,7 +12,7 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from conftest import SpinningNode, run_cli, start_cli
+from conftest import run_cli
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_BAG = REPO / 'bags' / 'default'
@@ -66,39 +64,29 @@ def ate(stdout):
 
 
 @pytest.fixture(scope='module')
-def runs(tmp_path_factory, rclpy_context):
-    from nav_msgs.msg import Odometry
+def runs(tmp_path_factory):
     base = tmp_path_factory.mktemp('crash')
     r = run_cli('replay', DEFAULT_BAG, '--out', base / 'plain', '--workers', 2,
                 '--duration', DURATION_S, '--no-rebalance', timeout=600)
     assert r.returncode == 0, r.stdout + r.stderr
-    # Count the graph's /odom ourselves (same isolated ROS domain) to kill mid-run.
-    listener = SpinningNode('crash_test_listener')
-    seen = []
-    listener.node.create_subscription(Odometry, '/odom', lambda m: seen.append(1), 10)
-    proc = start_cli('replay', DEFAULT_BAG, '--out', base / 'killed', '--workers', 2,
-                     '--duration', DURATION_S, '--no-rebalance')
-    out = []
-    reader = threading.Thread(target=lambda: out.append(proc.communicate(timeout=600)), daemon=True)
-    reader.start()
-    killed = None
-    deadline = time.monotonic() + 300
-    while killed is None and time.monotonic() < deadline and proc.poll() is None:
-        if len(seen) >= FRAMES // 3:      # a third of the way: the quarters hold real state
-            workers = [p for p, c in worker_processes().items() if '--index 1 ' in c + ' ']
-            if workers:
-                killed = workers[0]
-                os.kill(killed, signal.SIGKILL)
-        time.sleep(0.02)
-    reader.join(600)
-    listener.close()
-    stdout, stderr = out[0]
-    return base, r.stdout, proc.returncode, stdout + stderr, killed, len(seen)
+    # The replay kills its last worker (SIGKILL) once a third of the frames were acknowledged
+    # (the quarters hold real state then): at a frame, not at a moment, so the kill lands
+    # mid-run however fast the host (an outside /odom counter matched the graph late on a
+    # quiet machine, and the run was over before the kill).
+    r2 = run_cli('replay', DEFAULT_BAG, '--out', base / 'killed', '--workers', 2,
+                 '--duration', DURATION_S, '--no-rebalance', '--kill-worker-at', FRAMES // 3,
+                 timeout=600)
+    output = r2.stdout + r2.stderr
+    m = re.search(r'replay: killed worker 1 \(pid (\d+)\) after frame (\d+)', output)
+    killed = int(m.group(1)) if m else None
+    frame = int(m.group(2)) if m else None
+    return base, r.stdout, r2.returncode, output, killed, frame
 
 
 def test_killed_worker_is_restored_and_the_run_completes(runs):
-    base, _, code, output, killed, _ = runs
-    assert killed is not None, 'no worker was killed'
+    base, _, code, output, killed, frame = runs
+    assert killed is not None, 'no worker was killed:\n' + output[-3000:]
+    assert frame < FRAMES, frame          # mid-run
     assert code == 0, output
     # restored (how fast is a figure for the bench, not a test bound: 3.3 s on a loaded CI host)
     assert re.search(r'worker 1 restored in ([0-9.]+) s', output), output
