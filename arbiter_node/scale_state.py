@@ -28,7 +28,7 @@ from typing import Dict, Optional
 import numpy as np
 
 from arbiter_node.rig_scale import relative_motion, scale_correction, solve_rig_translation
-from camera_pose_nodes.map_scale import MapScaleCommand, scale_positions
+from camera_pose_nodes.map_scale import MapScaleCommand, rescale_filter, scale_positions
 from multicam_ego_motion.geometry import se3
 
 SOURCES = ('none', 'rig rotation', 'floor', 'wheel', 'stereo')
@@ -47,13 +47,7 @@ def metric_source(rig, wheel_seen: bool) -> Optional[str]:
 
 def rescale_body_ekf(ekf, k: float, centre):
     """BodyEKF: position about centre, linear velocity (base_link) and their covariance by k."""
-    x = ekf.kf.x
-    x[0:3, 0] = scale_positions(x[0:3, 0], k, centre)
-    x[6:9, 0] = k * x[6:9, 0]
-    s = np.ones(12)
-    s[0:3] = k
-    s[6:9] = k
-    ekf.kf.P = ekf.kf.P * s[:, None] * s[None, :]
+    rescale_filter(ekf.kf, k, centre)
 
 
 class ScaleState:

@@ -62,17 +62,23 @@ def scale_positions(P: np.ndarray, k: float, centre) -> np.ndarray:
     return c + k * (np.asarray(P, float) - c)
 
 
-def rescale_pose_ekf(ekf, k: float, centre):
-    """PoseEKF: position about centre, velocity and their covariance rows/columns by k."""
-    if ekf.stamp_ns is None:
-        return
-    x = ekf.kf.x
+def rescale_filter(kf, k: float, centre):
+    """A 12-state filter laid out as position (0:3), orientation, linear velocity (6:9),
+    angular velocity (the quarter's PoseEKF and the general arbiter's BodyEKF both are):
+    position about centre, velocity and their covariance rows/columns by k."""
+    x = kf.x
     x[0:3, 0] = scale_positions(x[0:3, 0], k, centre)
     x[6:9, 0] = k * x[6:9, 0]
     s = np.ones(12)
     s[0:3] = k
     s[6:9] = k
-    ekf.kf.P = ekf.kf.P * s[:, None] * s[None, :]
+    kf.P = kf.P * s[:, None] * s[None, :]
+
+
+def rescale_pose_ekf(ekf, k: float, centre):
+    """PoseEKF (once it has started): see rescale_filter."""
+    if ekf.stamp_ns is not None:
+        rescale_filter(ekf.kf, k, centre)
 
 
 def rescale_quarter(q, cmd: MapScaleCommand):
