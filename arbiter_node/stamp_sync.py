@@ -40,20 +40,20 @@ class Group:
 
 
 class _Open:
-    __slots__ = ('items', 'stamps', 'first_seen')
+    # lo / hi kept as stamps come in: they are read for every source at every poll.
+    __slots__ = ('items', 'stamps', 'first_seen', 'lo', 'hi')
 
     def __init__(self, now):
         self.items: Dict[str, object] = {}
         self.stamps: Dict[str, int] = {}
         self.first_seen = now
+        self.lo = self.hi = None
 
-    @property
-    def lo(self):
-        return min(self.stamps.values())
-
-    @property
-    def hi(self):
-        return max(self.stamps.values())
+    def put(self, source: str, stamp_ns: int, item):
+        self.items[source] = item
+        self.stamps[source] = stamp_ns
+        self.lo = stamp_ns if self.lo is None else min(self.lo, stamp_ns)
+        self.hi = stamp_ns if self.hi is None else max(self.hi, stamp_ns)
 
 
 class StampSynchronizer:
@@ -81,8 +81,7 @@ class StampSynchronizer:
             self.dropped_late += 1
             return self.poll(now)
         group = self._group_for(source, stamp_ns, now)
-        group.items[source] = item
-        group.stamps[source] = stamp_ns
+        group.put(source, stamp_ns, item)
         self._open.sort(key=lambda g: g.lo)
         return self.poll(now)
 
@@ -135,6 +134,8 @@ class StampSynchronizer:
         return source not in self.absent and self.due(source, g) and not self.past(source, g)
 
     def _complete(self, g: _Open) -> bool:
+        if all(s in g.items for s in self.sources):
+            return True                    # every source reported (a synchronised rig's case)
         return all(s in g.items for s in self.sources if self._waits_for(s, g))
 
     def poll(self, now: float) -> List[Group]:
@@ -142,9 +143,8 @@ class StampSynchronizer:
         while self._open:
             g = self._open[0]
             complete = self._complete(g)
-            newer_complete = any(self._complete(h) for h in self._open[1:])
             waited = now - g.first_seen >= self.timeout_s
-            if not (complete or waited or newer_complete):
+            if not (complete or waited or any(self._complete(h) for h in self._open[1:])):
                 break
             missing = [s for s in self.sources if s not in g.items and self.due(s, g)]
             for s in missing:

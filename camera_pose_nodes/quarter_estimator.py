@@ -11,7 +11,7 @@ fixes rotation but not distance (see docs/estimator.md).
 """
 import math
 import time
-from dataclasses import asdict, field, fields, make_dataclass
+from dataclasses import field, fields, make_dataclass
 from functools import lru_cache
 from typing import Dict, Optional
 
@@ -135,6 +135,11 @@ class _QuarterParamsChecks:
         if self.klt_window % 2 == 0:
             raise UserError(f'klt_window must be odd, got {self.klt_window}')
         return self
+
+    def as_dict(self) -> dict:
+        # Every field is a scalar: a flat copy is dataclasses.asdict's result without its
+        # recursive deep copy (~0.2 ms, at every state snapshot).
+        return {f.name: getattr(self, f.name) for f in fields(self)}
 
     @classmethod
     def from_dict(cls, d: dict) -> 'QuarterParams':
@@ -711,7 +716,7 @@ class QuarterEstimator:
         (picklable: numpy arrays, dicts, lists, numbers)."""
         self.extract_pending()     # (the same tracks as if it had run already)
         return {'version': STATE_VERSION, 'source': self.source,
-                'params': asdict(self.params), 'image_size': self.image_size,
+                'params': self.params.as_dict(), 'image_size': self.image_size,
                 'ekf': self.ekf.get_state(), 'tracker': self.tracker.get_state(),
                 'landmarks': self.landmarks.get_state(),
                 'fused_poses': {k: v.copy() for k, v in self.fused_poses.items()},
@@ -728,7 +733,7 @@ class QuarterEstimator:
         if s.get('source') != self.source or tuple(s.get('image_size', ())) != self.image_size:
             raise UserError(f'{self.source}: state belongs to {s.get("source")} '
                             f'{s.get("image_size")}, not this quarter {self.image_size}')
-        if s.get('params') != asdict(self.params):
+        if s.get('params') != self.params.as_dict():
             raise UserError(f'{self.source}: state was made with different parameters')
         self.ekf.set_state(s['ekf'])
         self.tracker.set_state(s['tracker'])

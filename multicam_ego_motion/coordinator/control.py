@@ -22,6 +22,10 @@ Messages (tuples):
                                                         worker that joins from elsewhere
                          (SNAPSHOT, key, state_pickle)  a stateful node finished a frame
                          (REPLY, request_id, dict)      answer to ATTACH / DETACH / LINKS
+                         (COSTS, (sec, nanosec), [(name, {key: value})])
+                                                        the hosted nodes' stage times of a
+                                                        frame (their /diagnostics values the
+                                                        allocation reads)
                          (PING,)                        heartbeat
   coordinator -> worker  (WELCOME, index, config)       to a joining worker: its slot, the
                                                         graph's params (text), namespace and
@@ -46,6 +50,7 @@ import threading
 from multicam_ego_motion.errors import UserError
 
 HELLO, SNAPSHOT, REPLY, PING, WELCOME = 'hello', 'snapshot', 'reply', 'ping', 'welcome'
+COSTS = 'costs'
 ATTACH, DETACH, LINKS, STOP = 'attach', 'detach', 'links', 'stop'
 REMOTE = -2                       # HELLO index of a worker that joins over TCP
 KEY_ENV = 'EGO_MOTION_CONTROL_KEY'

@@ -163,6 +163,8 @@ class Coordinator:
         self._forced = 0
         self._listener = None
         self._ros_node = None
+        self._diag_pub = None
+        self._costs_lock = threading.Lock()
 
     # ---- start / stop ---------------------------------------------------------------------
     def start(self):
@@ -408,6 +410,8 @@ class Coordinator:
                 msg = conn.recv(timeout=timeout)
                 if msg[0] == control.SNAPSHOT:
                     self.snapshots[msg[1]] = msg[2]
+                elif msg[0] == control.COSTS:
+                    self._on_costs(*msg[1:])
                 elif msg[0] == control.REPLY:
                     with self._reply_cond:
                         self._replies[msg[1]] = msg[2]
@@ -618,17 +622,17 @@ class Coordinator:
             self.migrate(key, w)
         self.allocation = d.proposal
 
-    # ---- ROS side: cost input and the coordinator's own diagnostics ------------------------
+    # ---- ROS side: the coordinator's own diagnostics -------------------------------------
     def attach_ros(self, node, rate_mode_period_s: Optional[float] = None):
-        """Subscribe /diagnostics on `node` and publish the coordinator's entry once per
-        frame. With `rate_mode_period_s`, rebalancing runs on a timer (no lockstep hook)."""
+        """Publish the coordinator's /diagnostics entry on `node` once per frame (when a
+        frame's costs came in from the workers). With `rate_mode_period_s`, rebalancing runs
+        on a timer (no lockstep hook)."""
         from diagnostic_msgs.msg import DiagnosticArray
 
         from multicam_ego_motion.ros_plumbing.qos import RELIABLE
         self._ros_node = node
         topic = under(self.namespace, '/diagnostics')
         self._diag_pub = node.create_publisher(DiagnosticArray, topic, RELIABLE)
-        node.create_subscription(DiagnosticArray, topic, self._on_diagnostics, RELIABLE)
         if rate_mode_period_s:      # steady clock: a node on sim time may wait for /clock forever
             from rclpy.clock import Clock, ClockType
             node.create_timer(rate_mode_period_s, self._rebalance_in_background,
@@ -647,13 +651,15 @@ class Coordinator:
                     self._bg_busy.release()
             threading.Thread(target=run, daemon=True).start()
 
-    def _on_diagnostics(self, msg):
-        from multicam_ego_motion.ros_plumbing import diagnostics
-        closed = False
-        for st in msg.status:
-            closed |= self.costs.observe(st.name, diagnostics.values_of(st))
-        if closed:
-            self._publish_diag(msg.header.stamp)
+    def _on_costs(self, stamp, entries):
+        # Workers' reader threads: one at a time into the cost monitor.
+        with self._costs_lock:
+            closed = False
+            for name, values in entries:
+                closed |= self.costs.observe(name, values)
+            if closed and self._diag_pub is not None:
+                from builtin_interfaces.msg import Time
+                self._publish_diag(Time(sec=stamp[0], nanosec=stamp[1]))
 
     def _note_gain(self, current: Allocation, version: int):
         if not self.rebalance_enabled or not self.costs.measured:

@@ -43,6 +43,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.parameter import Parameter
 
 from multicam_ego_motion.coordinator import control
+from multicam_ego_motion.coordinator.cost_monitor import cost_values
 from multicam_ego_motion.coordinator.idle_gc import IdleCollector
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.ros_plumbing.lean_executor import LeanExecutor
@@ -145,6 +146,7 @@ class Worker:
         from multicam_ego_motion.ros_plumbing.qos import RELIABLE
         self.diag_pub = self.node.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         self.diag_batches = {}          # (sec, nanosec) -> (stamp, [DiagnosticStatus], opened at)
+        self.diag_expected = None       # status names of a complete batch (hosted nodes')
         strip_event_handlers(self.node)
         # Shared inputs: one subscription per topic for all hosted quarters (a camera's image,
         # the fused pose) calling each one's callback. Per quarter, they were 2 takes and 2
@@ -228,8 +230,10 @@ class Worker:
         batch = self.diag_batches.setdefault(key, (stamp, [], time.monotonic()))[1]
         batch.append(status)
         # complete when every hosted node that reports has: its status name is its key's
-        expected = {f'ego_motion/{k}' for k, n in self.hosted.items() if getattr(n, 'diag_sink', None)}
-        if expected <= {s.name for s in batch}:
+        if self.diag_expected is None:
+            self.diag_expected = {f'ego_motion/{k}' for k, n in self.hosted.items()
+                                  if getattr(n, 'diag_sink', None)}
+        if len(batch) >= len(self.diag_expected) and self.diag_expected <= {s.name for s in batch}:
             self.flush_diagnostics(key)
 
     def flush_diagnostics(self, key=None):
@@ -238,6 +242,8 @@ class Worker:
         for k in ([key] if key is not None else sorted(self.diag_batches)):
             stamp, statuses, _ = self.diag_batches.pop(k)
             self.diag_pub.publish(diagnostics.array(stamp, statuses))
+            # The allocation's input, without the coordinator decoding the whole batch.
+            self.send((control.COSTS, k, [(s.name, cost_values(s)) for s in statuses]))
 
     def send(self, msg):
         with self.send_lock:
@@ -326,6 +332,7 @@ class Worker:
             node.work_ahead_sink = self.offer_idle_work
         strip_event_handlers(node)
         self.hosted[key] = node
+        self.diag_expected = None
         self.kinds[key] = spec['kind']
         if getattr(node, 'inputs', None):
             self.feed(key, node)
@@ -369,6 +376,7 @@ class Worker:
             self.executor.remove_node(node)
             node.destroy_node()
             del self.hosted[key]
+            self.diag_expected = None
             del self.kinds[key]
             self.wire_local()
             self.send((control.REPLY, req, {'ok': True, 'idle': idle,

@@ -31,6 +31,3 @@ def emit(stamp, status: DiagnosticStatus, sink, publisher):
     else:
         publisher.publish(array(stamp, [status]))
 
-
-def values_of(st: DiagnosticStatus) -> dict:
-    return {kv.key: kv.value for kv in st.values}
