@@ -101,7 +101,7 @@ def _child(argv=None):
                   remote={'listen': a.address, 'remote_workers': 1, 'key': control.load_key()},
                   remote_cpu=True)
     frames = len(g.playback.published_at)
-    print(json.dumps({'wall_ms': g.wall_s / max(frames, 1) * 1e3, 'frames': frames,
+    print(json.dumps({'wall_ms': g.frames_wall_s / max(frames, 1) * 1e3, 'frames': frames,
                       'odom': g.counts.get('/odom', 0),
                       'cpu_workers_ms': per_frame_ms(g.cpu_workers_s, frames),
                       'cpu_replay_ms': per_frame_ms(g.cpu_replay_s, frames)}), flush=True)

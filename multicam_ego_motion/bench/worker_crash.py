@@ -36,4 +36,4 @@ def worker_crash(bag, out: Path, rig, rig_file, params, n_frames: int, duration=
                   record_topics=['/odom'], kill_worker_at=max(1, n_frames // 3))
     frames = len(g.playback.published_at)
     return CrashFigures(frames, g.counts.get('/odom', 0), list(g.coordinator.stats.restore_s),
-                        int(g.playback.republished), g.wall_s / max(frames, 1) * 1e3)
+                        int(g.playback.republished), g.frames_wall_s / max(frames, 1) * 1e3)

@@ -188,6 +188,12 @@ class Coordinator:
         for h in self.workers:
             if not h.remote:
                 self._spawn(h)
+        if self.spare:
+            # Its imports (about 1 s of CPU) run alongside the workers' and end before the
+            # first frame: started last, they took a core from the first seconds of a run
+            # (about 4 ms a frame of a 20 s lockstep replay on two cores).
+            self._spare = WorkerHandle(-1)
+            self._spawn(self._spare)
         if self.remote_workers:
             self.say(f'waiting for {self.remote_workers} remote worker(s): `worker --coordinator '
                      f'{self.listen_address}` with the same key on the other host(s)')
@@ -195,9 +201,8 @@ class Coordinator:
             self._wait_ready(h)
             self._attach_all(h)
         self._await_links(self.workers)
-        if self.spare:
-            self._spare = WorkerHandle(-1)
-            self._spawn(self._spare)
+        if self._spare is not None:
+            self._wait_ready(self._spare)
         self._watchdog = threading.Thread(target=self._watch, daemon=True, name='coordinator-watchdog')
         self._watchdog.start()
         return self
