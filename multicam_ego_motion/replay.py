@@ -357,8 +357,11 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
 
             spinner = threading.Thread(target=spin, daemon=True, name='spin')
             recorder = BagRecorder(out_bag, topics=record_topics or recorded_topics(rig, debug_images))
-            node.create_subscription(Odometry, '/odom', lambda data: received.setdefault(
-                header_stamp_ns(data), time.monotonic()), RELIABLE, raw=True)
+            on_odom = lambda data: received.setdefault(header_stamp_ns(data), time.monotonic())
+            if '/odom' in recorder.topics:      # one take a frame for both
+                recorder.listen('/odom', on_odom)
+            else:
+                node.create_subscription(Odometry, '/odom', on_odom, RELIABLE, raw=True)
         coordinator.start()
         # Rate mode has no between-frames moment: rebalancing runs on a timer there.
         coordinator.attach_ros(node, rate_mode_period_s=None if lockstep else 1.0)

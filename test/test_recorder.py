@@ -63,3 +63,33 @@ def test_signal_leaves_a_complete_bag(sig, tmp_path, rclpy_context):
     assert summary[0].startswith(f'ego-motion: record interrupted by {signal.Signals(sig).name} after '), err
     assert f'kept {out}: recorded {N + received_poses} messages' in summary[0]
     assert '/chatter 50' in summary[0] and 'closed with its summary and metadata.yaml' in summary[0]
+
+
+def test_a_listener_sees_every_recorded_message(tmp_path, rclpy_context):
+    """`BagRecorder.listen`: a reader in the recorder's process (the replay's /odom latency
+    clock) gets each recorded message from the recorder's own take, the same ones as the bag."""
+    from rclpy.serialization import deserialize_message
+
+    from multicam_ego_motion.bag.recorder import BagRecorder
+    from multicam_ego_motion.errors import UserError
+    talker, host = SpinningNode('talker'), SpinningNode('recording')
+    reliable = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+    chatter = talker.node.create_publisher(String, '/chatter', reliable)
+    rec = BagRecorder(tmp_path / 'recorded', topics=['/chatter'])
+    with pytest.raises(UserError, match='/other is not recorded'):
+        rec.listen('/other', print)
+    heard = []
+    rec.listen('/chatter', lambda data: heard.append(deserialize_message(data, String).data))
+    try:
+        rec.attach(host.node)
+        assert rec.wait_for_topics(20), 'recorder never subscribed'
+        for i in range(N):
+            chatter.publish(String(data=f'hello {i}'))
+        assert _wait(lambda: len(heard) >= N, 20), heard
+    finally:
+        talker.close()
+        host.executor.shutdown(timeout_sec=1.0)     # no spinning over what close() destroys
+        counts = rec.close()
+        host.node.destroy_node()
+    assert heard == [f'hello {i}' for i in range(N)]
+    assert counts == {'/chatter': N}

@@ -63,6 +63,14 @@ class BagRecorder:
         self._node = None
         self._timers = []
         self._closed = False
+        self._listeners = {}      # topic -> [fn(serialized message)]
+
+    def listen(self, topic: str, fn):
+        """Also hand every recorded message of `topic` (serialized) to fn: a reader in the
+        same process then needs no subscription and no take of its own."""
+        if topic not in self.topics and not self.all_topics:
+            raise UserError(f'record: {topic} is not recorded, so it cannot be listened to')
+        self._listeners.setdefault(topic, []).append(fn)
 
     def attach(self, node):
         self._node = node
@@ -104,6 +112,8 @@ class BagRecorder:
             node.get_logger().info(f'recording {topic} ({typename})')
 
     def _on_message(self, topic, typename, data):
+        for fn in self._listeners.get(topic, ()):
+            fn(data)
         stamp = self._node.get_clock().now().nanoseconds
         with self._lock:
             if not self._closed:
