@@ -373,6 +373,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
             lockstep=lockstep, lockstep_depth=lockstep_depth, rate=rate, ack_topic='/odom',
             ack_timeout_s=ack_timeout, discovery_s=0.5, progress=None, sync_window_s=window,
             start_offset_s=start_offset, duration_s=duration,
+            ack_source=(lambda fn: recorder.listen('/odom', fn)) if '/odom' in recorder.topics else None,
             between_frames=(coordinator.between_frames if kill_worker_at is None
                             else _killing(coordinator, kill_worker_at)) if lockstep else None,
             health_check=coordinator.check_alive))

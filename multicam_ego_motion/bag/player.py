@@ -98,6 +98,10 @@ class PlayOptions:
     # (a UserError) aborts playback: `replay` uses it to notice a dead worker at once
     # instead of after the ack timeout.
     health_check: Optional[Callable[[], None]] = None
+    # lockstep: instead of subscribing to the ack topic, register the ack handler (it takes
+    # the serialized message) with a reader this process already has on that topic, e.g.
+    # BagRecorder.listen: one take per ack instead of two
+    ack_source: Optional[Callable[[Callable[[bytes], None]], None]] = None
 
 
 @dataclass
@@ -298,7 +302,9 @@ class BagPlayer:
             clock_pub = node.create_publisher(Clock, '/clock', publishing_qos('/clock', depth=10))
             entities.append(('pub', clock_pub))
         if opts.lockstep:
-            entities.append(('sub', self._subscribe_ack(node)))
+            ack_sub = self._subscribe_ack(node)
+            if ack_sub is not None:
+                entities.append(('sub', ack_sub))
         self._wait_for_subscribers(node, publishers)
 
         result = PlaybackResult(per_topic={self.published_name[t]: 0 for t in self.topics})
@@ -388,6 +394,9 @@ class BagPlayer:
                         self._ack_stamp_ns = stamp
                 self._cond.notify_all()
 
+        if self.options.ack_source is not None:
+            self.options.ack_source(on_ack)
+            return None
         return node.create_subscription(message_class(typename), ack, on_ack,
                                         subscribing_qos(i.qos_profile for i in infos), raw=True)
 
