@@ -295,7 +295,6 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
     workers (listen, remote_workers, key); remote_cpu: their processes are on this machine
     (network namespaces, the bench's two-host row) and their CPU counts with the workers'."""
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
     from rclpy.exceptions import InvalidHandle
 
@@ -304,9 +303,8 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
     from multicam_ego_motion.bag.recorder import BagRecorder
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
     from multicam_ego_motion.coordinator.coordinator import Coordinator
+    from multicam_ego_motion.ros_plumbing.lean_executor import LeanExecutor
     from multicam_ego_motion.ros_plumbing.lean_node import LeanNode
-    from multicam_ego_motion.ros_plumbing.qos import RELIABLE
-    from nav_msgs.msg import Odometry
 
     from multicam_ego_motion.params_file import sync_window_from
 
@@ -333,11 +331,14 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
     interrupt.note(progress=lambda: 'while starting the graph', kept='nothing recorded yet')
     try:
         with interrupt.deferred():   # every resource below exists, or the finally sees None
-            # Player, recorder and coordinator share this node: ~30 wake-ups a frame, each
-            # walks the wait set (LeanNode: without the QoS event handlers of its ~25
-            # publishers/subscriptions).
+            # Player, recorder and coordinator share this node (LeanNode: without the QoS
+            # event handlers of its ~25 publishers/subscriptions), spun by a LeanExecutor
+            # (rclpy's rebuilt its wait set in Python before each of ~8 waits a frame). Its
+            # subscriptions are the recorder's only: created on this thread or in its own
+            # callbacks, destroyed after the spinning stopped (the player takes its acks from
+            # the recorder), so none goes away under a wait.
             node = LeanNode('ego_motion_replay')
-            executor = SingleThreadedExecutor()
+            executor = LeanExecutor()
             executor.add_node(node)
 
             def spin():
@@ -356,12 +357,11 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
                             raise
 
             spinner = threading.Thread(target=spin, daemon=True, name='spin')
-            recorder = BagRecorder(out_bag, topics=record_topics or recorded_topics(rig, debug_images))
-            on_odom = lambda data: received.setdefault(header_stamp_ns(data), time.monotonic())
-            if '/odom' in recorder.topics:      # one take a frame for both
-                recorder.listen('/odom', on_odom)
-            else:
-                node.create_subscription(Odometry, '/odom', on_odom, RELIABLE, raw=True)
+            topics = list(record_topics or recorded_topics(rig, debug_images))
+            # /odom is always recorded: the latency clock below and the lockstep player's acks
+            # listen on the recorder's subscription (one take a frame for all three)
+            recorder = BagRecorder(out_bag, topics=topics + ['/odom'] * ('/odom' not in topics))
+            recorder.listen('/odom', lambda data: received.setdefault(header_stamp_ns(data), time.monotonic()))
         coordinator.start()
         # Rate mode has no between-frames moment: rebalancing runs on a timer there.
         coordinator.attach_ros(node, rate_mode_period_s=None if lockstep else 1.0)
@@ -373,7 +373,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
             lockstep=lockstep, lockstep_depth=lockstep_depth, rate=rate, ack_topic='/odom',
             ack_timeout_s=ack_timeout, discovery_s=0.5, progress=None, sync_window_s=window,
             start_offset_s=start_offset, duration_s=duration,
-            ack_source=(lambda fn: recorder.listen('/odom', fn)) if '/odom' in recorder.topics else None,
+            ack_source=lambda fn: recorder.listen('/odom', fn),
             between_frames=(coordinator.between_frames if kill_worker_at is None
                             else _killing(coordinator, kill_worker_at)) if lockstep else None,
             health_check=coordinator.check_alive))
@@ -399,9 +399,11 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
         with interrupt.deferred():
             stopping.set()
             if executor is not None:
-                executor.shutdown()
+                executor.wake()             # out of its wait; shut down once it has stopped
             if spinner is not None and spinner.is_alive():
                 spinner.join(timeout=5.0)
+            if executor is not None:
+                executor.shutdown()         # (destroys the guard conditions a wait would use)
             counts = recorder.close() if recorder is not None else {}
             if recorder is not None:
                 interrupt.note(kept=f'kept {out_bag}: {counts.get("/odom", 0)} /odom, '

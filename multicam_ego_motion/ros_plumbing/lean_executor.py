@@ -199,6 +199,11 @@ class LeanExecutor:
                 ready.append(lambda c=c: self._call_client(c))
         return ready
 
+    def spin_once(self, timeout_sec: Optional[float] = None) -> None:
+        """Wait once (as wait_ready) and call what is ready."""
+        for call in self.wait_ready(timeout_sec):
+            call()
+
     # ----- taking and calling ---------------------------------------------------------------
     @staticmethod
     def _call_timer(t):
