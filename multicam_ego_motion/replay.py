@@ -346,9 +346,8 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
                     try:
                         executor.spin_once(timeout_sec=0.1)
                     except InvalidHandle:
-                        # An entity destroyed by its owner while in the wait set (the player
-                        # removes its publishers when it stops, also on an error): the next
-                        # wait set is built without it.
+                        # An entity invalidated under the wait (rclpy tearing down on an
+                        # error): the next wait set is built without it.
                         continue
                     except Exception:
                         # Tearing down (a signal, end of run) can invalidate more under the

@@ -98,3 +98,48 @@ def test_wait_times_out_empty(context):
     assert ex.wait_ready(0.05) == []
     ex.shutdown()
     node.destroy_node()
+
+
+RACE = r'''
+import threading, rclpy
+from std_msgs.msg import Int64
+from multicam_ego_motion.ros_plumbing.lean_executor import LeanExecutor
+from multicam_ego_motion.ros_plumbing.lean_node import LeanNode
+rclpy.init()
+node = LeanNode('lean_race')
+ex = LeanExecutor()
+ex.add_node(node)
+stop = threading.Event()
+got = []
+def spin():
+    while not stop.is_set():
+        ex.spin_once(timeout_sec=0.01)
+t = threading.Thread(target=spin)
+t.start()
+pubs = []
+for i in range(150):
+    node.create_subscription(Int64, f'/lean_race/s{i}', got.append, 10)
+    pubs.append(node.create_publisher(Int64, f'/lean_race/s{i}', 10))
+stop.set()
+ex.wake()
+t.join()
+ex.shutdown()
+n = len(list(node.waitables))
+node.destroy_node()
+rclpy.shutdown()
+print('waitables', n)
+'''
+
+
+def test_entities_created_while_another_thread_spins(tmp_path):
+    """The replay process creates its recorder's subscriptions and its player's publishers
+    on the main thread while a thread spins the LeanExecutor. A LeanNode's entities have no
+    QoS event handlers at all (rclpy's defaults created, then destroyed under the other
+    thread's wait, crashed the process with SIGSEGV)."""
+    import subprocess
+    import sys
+    script = tmp_path / 'race.py'
+    script.write_text(RACE)
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, (r.returncode, r.stderr[-2000:])
+    assert r.stdout.split() == ['waitables', '0']

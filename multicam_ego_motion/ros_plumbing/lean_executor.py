@@ -15,6 +15,11 @@ QoS event handlers, services and clients), one thread, no callback groups or cor
 (a coroutine callback is run to completion at once). Entities are taken when their callback
 runs, not when the wait returns, so a callback that destroys another entity of the same batch
 (a node detached) makes that one skipped, as in rclpy.
+
+Threads: entities may be created from another thread while one spins (the next wait sees
+them), but not destroyed there: unlike rclpy's executor, a wait does not hold a use count on
+every handle (that costs ~20 us a wait), so an entity must be destroyed by the spinning
+thread, between waits, or after the spinning stopped.
 """
 import inspect
 import threading

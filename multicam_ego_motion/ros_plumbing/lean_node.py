@@ -2,6 +2,7 @@
 handlers (they log incompatible-QoS warnings), each a waitable that the SingleThreadedExecutor
 adds to its wait set, in Python, before every wait. In a process that wakes up dozens of times
 a frame they cost more than the callbacks themselves."""
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
 
 
@@ -25,17 +26,19 @@ def strip_event_handlers(node, keep=lambda topic: topic.endswith('/image_raw')):
 class LeanNode(Node):
     """A node whose publishers and subscriptions come without QoS event handlers: for the
     replay process (player, recorder, coordinator on one node), whose topics are all the
-    graph's own and matched on purpose."""
+    graph's own and matched on purpose.
+
+    The handlers are never created (rclpy's default callbacks off), not created and then
+    removed: that process creates entities on its main thread while another thread spins,
+    and a handler destroyed while that thread's wait set held it crashed the process."""
 
     def create_publisher(self, *args, **kwargs):
-        pub = super().create_publisher(*args, **kwargs)
-        strip_entity(self, pub)
-        return pub
+        kwargs.setdefault('event_callbacks', PublisherEventCallbacks(use_default_callbacks=False))
+        return super().create_publisher(*args, **kwargs)
 
     def create_subscription(self, *args, **kwargs):
-        sub = super().create_subscription(*args, **kwargs)
-        strip_entity(self, sub)
-        return sub
+        kwargs.setdefault('event_callbacks', SubscriptionEventCallbacks(use_default_callbacks=False))
+        return super().create_subscription(*args, **kwargs)
 
 
 def subscribe_remote(node, subs: dict, names, local, subscribe):
