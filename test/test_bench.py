@@ -116,3 +116,23 @@ def test_crash_row_reports_the_restore_and_what_was_published_again():
     assert '| killed after frame | 53 of 161 |' in text and '| time to restore its nodes on the spare [s] | 0.71 |' in text
     assert '| frames with /odom | 161 of 161 |' in text and '| frames published again | 1 |' in text
     assert 'none (not restored)' in '\n'.join(CrashFigures(10, 3, [], 0, 1.0).lines())
+
+
+def test_machine_speed_reference_work():
+    """The bench's machine line: fixed reference work whose figures are real measurements
+    (the flow it times finds the known shift of its synthetic quarter)."""
+    import cv2
+    import numpy as np
+    from multicam_ego_motion.bench import machine_speed
+    a, b = machine_speed._quarter_pair()
+    assert a.shape == b.shape == (120, 160)
+    p0 = cv2.goodFeaturesToTrack(a, 80, 0.01, 5)
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(a, b, p0, None, winSize=(21, 21), maxLevel=3)
+    ok = st.ravel() == 1
+    assert len(p0) >= 60 and ok.mean() > 0.9
+    assert np.allclose(np.median((p1 - p0).reshape(-1, 2)[ok], axis=0), [2.3, -1.6], atol=0.05)
+    s = machine_speed.measure()
+    assert s.cpus >= 1 and s.cpu
+    assert 0.0 < s.lk_us_per_point < 1e4 and 0.0 < s.python_ms < 1e5
+    line = s.line()
+    assert f'{s.lk_us_per_point:.1f} us per point' in line and f'{s.python_ms:.1f} ms' in line

@@ -9,7 +9,8 @@ the camera-rate row (four 640x480 cameras at 30 Hz in rate mode on M = 2: camera
 accuracy live vs offline at 15 and 30 Hz (live_offline.py), the track CPU per tracked
 point, the targets, one row each with met or missed (targets.py), and the paper's model
 (parallel_time_model) fed with the median stage times measured in the M = 2 lockstep run,
-next to the paper's Fig. 6(d). Measured, not asserted. The VGA bags are generated on first
+next to the paper's Fig. 6(d), and under the title how fast the machine is on fixed reference
+work (machine_speed.py), so that runs on different machines compare. Measured, not asserted. The VGA bags are generated on first
 use into --camera-rate-bags and reused; a worker killed mid-run (worker_crash.py: time to
 restore), and the two-host row (two_hosts.py: M = 2 with the second worker in another
 network namespace, i.e. across UDP and a TCP control channel, beside the one-host M = 2 row;
@@ -23,6 +24,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from multicam_ego_motion.bench import machine_speed
 from multicam_ego_motion.bench.measures import (graph_run, per_frame_ms, rate_figures, read_statuses,
                                                 track_cost, write_latency_csv)
 from multicam_ego_motion.errors import UserError
@@ -92,6 +94,7 @@ def run(args) -> int:
     params = Path(args.params) if args.params else default_params()
     t_bench = time.monotonic()
     n_frames, bag_s = bag_window(args.bag, args.duration)
+    speed = machine_speed.measure()         # first, on a machine the bench has not loaded yet
 
     # 1.-3. the default bag: sequential, lockstep M = 1 and 2, rate mode M = 2
     d = default_bag_runs(args, out, rig, rig_file, params, n_frames)
@@ -99,6 +102,7 @@ def run(args) -> int:
     write_latency_csv(out / 'rate_m2' / 'latency.csv', d.rate_run.playback.published_at,
                       d.rate_run.odom_received)
     lines = timing_lines(args.bag, n_frames, bag_s, d, rate)
+    lines[1:1] = ['', speed.line()]
 
     # 4. camera rate (VGA 30 Hz) and 5. accuracy live vs offline (VGA 15 and 30 Hz)
     cam_rate = live_off = None
