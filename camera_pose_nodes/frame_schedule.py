@@ -8,10 +8,10 @@ of the rig (when each quarter simply took the newest image it had, only a fifth 
 frames of a 30 Hz run were fused from the whole rig, and the ATE grew from 0.2 to 6.7 %).
 So the general arbiter decides (FrameGovernor, from the lag of its fused poses behind the
 frame stamps) and publishes a FrameSchedule on /ego_motion/frame_schedule: from a frame that
-every quarter will have processed (two frames of the old schedule after the last fused one,
-so that the schedule reaches every quarter before it applies: a worker's executor may hand
-its quarters the fused pose before the schedule published just ahead of it), every
-`stride`-th frame. Quarters apply it to the frames they take (ScheduleBook), so the choice
+no quarter has taken yet (two frames of the old schedule after the clock's now, so that the
+schedule reaches every quarter before it applies: a worker's executor may hand its quarters
+the fused pose before the schedule published just ahead of it, and a quarter may run ahead
+of the fused poses), every `stride`-th frame. Quarters apply it to the frames they take (ScheduleBook), so the choice
 depends on stamps alone.
 """
 from dataclasses import dataclass
@@ -137,7 +137,13 @@ class FrameGovernor:
             stride = max(1, min(self.stride, int(steady // self.period_ns) + 1))
         if stride == self.stride:
             return None
-        start = int(stamp_ns) + LEAD_FRAMES * self.stride * self.period_ns
+        # From a frame of the old schedule that no quarter can have taken yet: after the
+        # clock's now, not after the fused frame. A quarter whose fused poses time out runs
+        # ahead of them (under load by seconds), and a schedule starting behind it left
+        # frames it had processed and the others skipped: fused from part of the rig.
+        step = self.stride * self.period_ns
+        ahead = max(0, int(now_ns) - int(stamp_ns))
+        start = int(stamp_ns) + (LEAD_FRAMES + -(-ahead // step)) * step
         self.stride = stride
         self.lags = []
         return FrameSchedule(start, self.period_ns, stride)

@@ -3,7 +3,8 @@
 The default bag played at 6 times its rate (48 Hz: about 1.5 times what two cores can process) through
 the whole graph over DDS in rate mode: the general arbiter raises the frame stride
 (/ego_motion/frame_schedule, /diagnostics frame_stride), the quarters follow it, and every
-frame that has odometry was estimated by all 16 quarters (none fused from part of the rig).
+quarter takes only frames the schedule takes, and most frames with odometry were estimated by
+all 16 quarters.
 Behaviour only: how many frames are skipped depends on the machine."""
 from collections import defaultdict
 
@@ -41,15 +42,24 @@ def test_the_general_arbiter_raises_the_stride_and_says_so(overloaded):
     assert skipped > 0
 
 
-def test_every_fused_frame_has_all_sixteen_quarters(overloaded):
+def test_every_quarter_follows_the_schedule_and_fused_frames_are_whole(overloaded):
+    from camera_pose_nodes.frame_schedule import FrameSchedule, ScheduleBook
     odom = {stamp_ns(m) for m in read_topic(overloaded / 'output', '/odom')}
     quarters = defaultdict(set)
     for cam in ('front', 'left', 'back', 'right'):
         for q in range(1, 5):
             for m in read_topic(overloaded / 'output', f'/{cam}/q{q}/pose'):
                 quarters[stamp_ns(m)].add(f'{cam}/q{q}')
+    book = ScheduleBook()
+    for m in read_topic(overloaded / 'output', '/ego_motion/frame_schedule'):
+        book.add(FrameSchedule.from_list(m.data))
+    # No quarter took a frame the schedule skips, and nothing was fused from one: a schedule
+    # that started behind a quarter running ahead of the fused poses left such frames
+    # (fused from part of the rig) by the dozen under load.
+    off = sorted(s for s in set(quarters) | odom if not book.takes(s))
+    assert not off, [(s, sorted(quarters[s])) for s in off][:5]
     whole = [s for s in odom if len(quarters[s]) == 16]
-    # a frame may miss a quarter now and then (rate mode drops what comes too late); a
-    # schedule that quarters did not share would leave most frames partial
-    assert len(whole) >= 0.8 * len(odom), (len(whole), len(odom))
+    # A frame may still miss a camera now and then: rate mode drops what comes too late
+    # (about one frame in seven on a quiet machine, more under load).
+    assert len(whole) >= 0.6 * len(odom), (len(whole), len(odom))
     assert len(odom) >= 20
