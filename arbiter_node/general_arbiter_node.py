@@ -164,7 +164,8 @@ class GeneralArbiterNode(Node):
         """A new frame schedule when the lag calls for one: published before the fused pose,
         so the quarters have it when they pick their next frame."""
         was_enabled = self.governor.enabled
-        schedule = self.governor.update(stamp_ns, self.get_clock().now().nanoseconds)
+        schedule = self.governor.update(stamp_ns, self.get_clock().now().nanoseconds,
+                                        max(self.sync.last_stamp.values(), default=stamp_ns))
         if was_enabled and not self.governor.enabled:
             self.get_logger().warn(
                 f'frame stamps and this node\'s clock differ by more than '

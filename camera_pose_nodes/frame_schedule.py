@@ -8,10 +8,10 @@ of the rig (when each quarter simply took the newest image it had, only a fifth 
 frames of a 30 Hz run were fused from the whole rig, and the ATE grew from 0.2 to 6.7 %).
 So the general arbiter decides (FrameGovernor, from the lag of its fused poses behind the
 frame stamps) and publishes a FrameSchedule on /ego_motion/frame_schedule: from a frame that
-no quarter has taken yet (two frames of the old schedule after the clock's now, so that the
-schedule reaches every quarter before it applies: a worker's executor may hand its quarters
-the fused pose before the schedule published just ahead of it, and a quarter may run ahead
-of the fused poses), every `stride`-th frame. Quarters apply it to the frames they take (ScheduleBook), so the choice
+no quarter has taken yet (two frames of the old schedule after the newest estimate the
+general arbiter has received, so that the schedule reaches every quarter before it applies: a
+worker's executor may hand its quarters the fused pose before the schedule published just
+ahead of it, and a quarter may run ahead of the fused poses), every `stride`-th frame. Quarters apply it to the frames they take (ScheduleBook), so the choice
 depends on stamps alone.
 """
 from dataclasses import dataclass
@@ -103,8 +103,10 @@ class FrameGovernor:
     def enabled(self) -> bool:
         return self.max_lag_s > 0.0 and not self.clock_mismatch
 
-    def update(self, stamp_ns: int, now_ns: int) -> Optional[FrameSchedule]:
-        """After fusing frame `stamp_ns` at clock `now_ns`: a new schedule, or None."""
+    def update(self, stamp_ns: int, now_ns: int, newest_ns: Optional[int] = None) -> Optional[FrameSchedule]:
+        """After fusing frame `stamp_ns` at clock `now_ns`: a new schedule, or None.
+        `newest_ns`: the newest stamp of any estimate the arbiter has received (quarters
+        may be ahead of the fused frame)."""
         # The frame period: the shortest step between fused frames (the graph starts on
         # every frame; a schedule's frames are whole periods apart whatever it is).
         if self.last_stamp_ns is not None and stamp_ns > self.last_stamp_ns:
@@ -137,12 +139,13 @@ class FrameGovernor:
             stride = max(1, min(self.stride, int(steady // self.period_ns) + 1))
         if stride == self.stride:
             return None
-        # From a frame of the old schedule that no quarter can have taken yet: after the
-        # clock's now, not after the fused frame. A quarter whose fused poses time out runs
-        # ahead of them (under load by seconds), and a schedule starting behind it left
-        # frames it had processed and the others skipped: fused from part of the rig.
+        # From a frame of the old schedule after the newest estimate received, not after the
+        # fused frame: a quarter whose fused poses time out runs ahead of them, and a schedule
+        # starting behind it left frames it had processed and the others skipped (fused from
+        # part of the rig). Not after the clock's now either: under load that is seconds
+        # ahead, and the stride then came that much too late (live accuracy halved).
         step = self.stride * self.period_ns
-        ahead = max(0, int(now_ns) - int(stamp_ns))
+        ahead = max(0, int(newest_ns) - int(stamp_ns)) if newest_ns is not None else 0
         start = int(stamp_ns) + (LEAD_FRAMES + -(-ahead // step)) * step
         self.stride = stride
         self.lags = []
