@@ -204,7 +204,7 @@ def test_rate_mode_timing_and_remap(bag, rclpy_context):
         # Rate mode publishes whether or not anyone listens (like ros2 bag play): give a
         # loaded machine time to discover the recipient first.
         proc = run_cli('play', bag, '--rate', '2', '--remap', '/chatter:=/talk',
-                       '--topics', '/chatter', '--discovery', '3', timeout=60)
+                       '--topics', '/chatter', '--discovery', '8', timeout=60)
         assert proc.returncode == 0, proc.stderr
         time.sleep(0.3)
         with recipient.lock:
