@@ -11,8 +11,9 @@ frame stamps) and publishes a FrameSchedule on /ego_motion/frame_schedule: from 
 no quarter has taken yet (two frames of the old schedule after the newest estimate the
 general arbiter has received, so that the schedule reaches every quarter before it applies: a
 worker's executor may hand its quarters the fused pose before the schedule published just
-ahead of it, and a quarter may run ahead of the fused poses), every `stride`-th frame. Quarters apply it to the frames they take (ScheduleBook), so the choice
-depends on stamps alone.
+ahead of it, and a quarter may run ahead of the fused poses), every `stride`-th frame.
+Quarters apply it to the frames they take (ScheduleBook), so the choice depends on stamps
+alone.
 """
 from dataclasses import dataclass
 from typing import List, Optional
@@ -143,7 +144,7 @@ class FrameGovernor:
         # fused frame: a quarter whose fused poses time out runs ahead of them, and a schedule
         # starting behind it left frames it had processed and the others skipped (fused from
         # part of the rig). Not after the clock's now either: under load that is seconds
-        # ahead, and the stride then came that much too late (live accuracy halved).
+        # ahead, and the stride would come that much too late.
         step = self.stride * self.period_ns
         ahead = max(0, int(newest_ns) - int(stamp_ns)) if newest_ns is not None else 0
         start = int(stamp_ns) + (LEAD_FRAMES + -(-ahead // step)) * step

@@ -13,6 +13,7 @@ every bench, so that figures from different machines can be compared:
 Each is the fastest of several runs in CPU time of the calling thread, so other load on the
 machine changes it little.
 """
+import os
 import platform
 import time
 from dataclasses import dataclass
@@ -20,6 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 
 _LK_POINTS = 80
+_LK_WINDOW = 21
+_LK_LEVELS = 3
 _PYTHON_LOOP = 300_000
 
 
@@ -32,8 +35,9 @@ class MachineSpeed:
 
     def line(self) -> str:
         return (f'Machine: {self.cpu}, {self.cpus} CPUs; reference work (CPU time, fastest of '
-                f'several runs): Lucas-Kanade {self.lk_us_per_point:.1f} us per point (80 corners, '
-                f'21x21 window, 3 levels, one thread), Python loop {self.python_ms:.1f} ms. The '
+                f'several runs): Lucas-Kanade {self.lk_us_per_point:.1f} us per point ({_LK_POINTS} '
+                f'corners, {_LK_WINDOW}x{_LK_WINDOW} window, {_LK_LEVELS} levels, one thread), '
+                f'Python loop {self.python_ms:.1f} ms. The '
                 'bench\'s CPU figures scale with these: compare runs on different machines through '
                 'them.')
 
@@ -73,7 +77,8 @@ def lk_us_per_point(repeats: int = 100) -> float:
         best = float('inf')
         for _ in range(repeats):
             t0 = time.thread_time()
-            cv2.calcOpticalFlowPyrLK(a, b, pts, None, winSize=(21, 21), maxLevel=3, criteria=crit)
+            cv2.calcOpticalFlowPyrLK(a, b, pts, None, winSize=(_LK_WINDOW, _LK_WINDOW), maxLevel=_LK_LEVELS,
+                                     criteria=crit)
             best = min(best, time.thread_time() - t0)
     finally:
         cv2.setNumThreads(threads)
@@ -92,5 +97,4 @@ def python_loop_ms(repeats: int = 5) -> float:
 
 
 def measure() -> MachineSpeed:
-    import os
     return MachineSpeed(cpu_model(), os.cpu_count() or 1, lk_us_per_point(), python_loop_ms())

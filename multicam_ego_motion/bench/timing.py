@@ -10,8 +10,8 @@ accuracy live vs offline at 15 and 30 Hz (live_offline.py), the track CPU per tr
 point, the targets, one row each with met or missed (targets.py), and the paper's model
 (parallel_time_model) fed with the median stage times measured in the M = 2 lockstep run,
 next to the paper's Fig. 6(d), and under the title how fast the machine is on fixed reference
-work (machine_speed.py), so that runs on different machines compare. Measured, not asserted. The VGA bags are generated on first
-use into --camera-rate-bags and reused; a worker killed mid-run (worker_crash.py: time to
+work (machine_speed.py), so that runs on different machines compare. Measured, not asserted.
+The VGA bags are generated on first use into --camera-rate-bags and reused; a worker killed mid-run (worker_crash.py: time to
 restore), and the two-host row (two_hosts.py: M = 2 with the second worker in another
 network namespace, i.e. across UDP and a TCP control channel, beside the one-host M = 2 row;
 skipped with the reason where namespaces cannot be made). --skip-camera-rate,
