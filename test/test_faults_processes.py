@@ -9,7 +9,10 @@ every frame.
 import os
 import re
 import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import pytest
 from mcap.stream_reader import StreamReader
@@ -49,7 +52,13 @@ def hosts(out):
 
 
 def finished(proc, bag, out, timeout=60):
-    stdout, stderr = proc.communicate(timeout=timeout)
+    try:
+        stdout, stderr = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        # Not left running: a hung replay and its workers would load (and fail) later tests.
+        os.killpg(proc.pid, signal.SIGKILL)
+        stdout, stderr = proc.communicate()
+        raise AssertionError(f'replay still running after {timeout} s:\n{stdout}\n{stderr[-4000:]}')
     return ReplayRun(bag, out, proc.returncode, stdout, stderr, 0.0)
 
 
@@ -143,6 +152,31 @@ def test_killed_worker_is_restarted_and_the_replay_completes(short_bag, tmp_path
     out = tmp_path / 'out'
     run, _, _, _ = kill_worker(short_bag, out, hosting_general_arbiter)
     assert run.returncode == 0, run
+    stamps = run.odometry()[0]
+    assert len(stamps) == len(frame_stamps(short_bag))   # no frame lost
+    assert run.odom_problems() == []
+    assert run.leftover_processes() == []
+
+
+@pytest.mark.parametrize('victim', ['source', 'destination'])
+def test_worker_killed_during_a_move_is_restored_with_the_moved_node(short_bag, tmp_path, victim):
+    """A crash in the middle of a node move (a rebalance, here a forced move every 3 frames)
+    is a crash like any other: the worker is restored, the moved node with it (on the worker
+    it was leaving, or the one it was going to), and no frame is lost. (The move failed the
+    replay with "no reply to detach (died)" before.)"""
+    out = tmp_path / 'out'
+    proc = subprocess.Popen([sys.executable, str(Path(__file__).with_name('replay_losing_a_worker_mid_move.py')),
+                             'replay', str(short_bag), '--out', str(out), '--workers', '2',
+                             '--migrate-every', '3'],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=replay_env(out, KILL_DURING_MOVE=victim), start_new_session=True)
+    run = finished(proc, short_bag, out, timeout=180)
+    assert run.returncode == 0, run
+    assert f'the move\'s {victim}' in run.stdout
+    assert re.search(r'worker \d restored in', run.stdout), run.stdout
+    # the first forced move (front/q1) did not happen, or happened, and the crash watcher
+    # restored front/q1 where the coordinator had it placed
+    assert 'move of front/q1' in run.stdout, run.stdout
     stamps = run.odometry()[0]
     assert len(stamps) == len(frame_stamps(short_bag))   # no frame lost
     assert run.odom_problems() == []

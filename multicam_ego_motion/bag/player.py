@@ -441,6 +441,11 @@ class BagPlayer:
         while self._wait(acknowledged_or_restart, deadline - time.monotonic()):
             if acknowledged():
                 return republished
+            if republished == 0:
+                # The restored graph gets the whole timeout from its restore on.
+                deadline = time.monotonic() + opts.ack_timeout_s
+            elif time.monotonic() > deadline:
+                break       # (the flag stays set: without this the loop never ended)
             # A worker was restarted: again, until the frame is acknowledged (a copy sent
             # before the restored nodes were matched is lost for them).
             for f in in_flight:

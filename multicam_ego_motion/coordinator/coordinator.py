@@ -61,6 +61,11 @@ REMOTE_JOIN_TIMEOUT_S = 120.0
 WORKER_MODULE = 'multicam_ego_motion.coordinator.worker'
 
 
+class WorkerDied(UserError):
+    """A request to a worker that died (or whose connection broke) before it replied: the
+    crash watcher restores it, so a caller in the middle of a move lets it."""
+
+
 @dataclass
 class WorkerHandle:
     index: int
@@ -453,7 +458,7 @@ class Coordinator:
     def _post(self, h, kind, *args) -> int:
         req = next(self._req)
         if not self._send(h, (kind, req, *args)):
-            raise UserError(f'worker {h.index} is not reachable')
+            raise WorkerDied(f'worker {h.index} is not reachable')
         return req
 
     def _collect(self, h, kind, reqs, timeout=REPLY_TIMEOUT_S) -> List[dict]:
@@ -462,9 +467,10 @@ class Coordinator:
     def _reply(self, h, kind, req, deadline) -> dict:
         with self._reply_cond:
             while req not in self._replies:
-                if not h.alive or time.monotonic() > deadline:
-                    raise UserError(f'worker {h.index}: no reply to {kind} '
-                                    f'({"died" if not h.alive else "timeout"})')
+                if not h.alive:
+                    raise WorkerDied(f'worker {h.index}: no reply to {kind} (died)')
+                if time.monotonic() > deadline:
+                    raise UserError(f'worker {h.index}: no reply to {kind} (timeout)')
                 self._reply_cond.wait(0.1)
             reply = self._replies.pop(req)
         if not reply.get('ok'):
@@ -557,13 +563,27 @@ class Coordinator:
             readers = (self.image_readers(camera, without),
                        self.image_readers(camera, dict(without, **{key: dst})))
             t = [time.monotonic()]
-            reply = self._request(self.workers[src], control.DETACH, key)
+            try:
+                reply = self._request(self.workers[src], control.DETACH, key)
+            except WorkerDied as e:
+                # The node stays placed on src: the crash watcher (waiting for this lock)
+                # restores it there with src's other nodes, from its last snapshot.
+                self.say(f'move of {key} abandoned: {e}; its worker is being restored')
+                return
             t.append(time.monotonic())
             if self.link_waiter:
                 self.link_waiter(spec, 'detached', readers[0])
             t.append(time.monotonic())
             self.snapshots[key] = reply['state']
-            self._attach(self.workers[dst], key, reply['state'], wait_links=True)
+            try:
+                self._attach(self.workers[dst], key, reply['state'], wait_links=True)
+            except WorkerDied as e:
+                # Detached from src already: placed on dst, it is restored there with the
+                # state it was detached with.
+                self.placement[key] = dst
+                self._placement_version += 1
+                self.say(f'move of {key} to worker {dst} cut short: {e}; it is restored there')
+                return
             t.append(time.monotonic())
             if self.link_waiter:
                 self.link_waiter(spec, 'attached', readers[1])
