@@ -21,6 +21,7 @@ from multicam_ego_motion.ros_plumbing import diagnostics
 from multicam_ego_motion.ros_plumbing.lean_node import subscribe_remote
 from multicam_ego_motion.ros_plumbing.node_main import spin_node
 from multicam_ego_motion.ros_plumbing.node_parameters import declare_from_table
+from multicam_ego_motion.ros_plumbing.recent_outputs import RecentOutputs
 from multicam_ego_motion.ros_plumbing.pose_messages import estimate_to_msg, msg_to_estimate, ns_to_stamp, stamp_to_ns
 from multicam_ego_motion.ros_plumbing.qos import RELIABLE, RELIABLE_IMAGES
 
@@ -55,6 +56,7 @@ class CameraArbiterNode(Node):
         # co-hosted general arbiter directly (which then does not subscribe to it)
         self.estimate_sink = None
         self.sources = sources
+        self.sent = RecentOutputs()      # stamp -> published camera pose
         self.quarter_subs = {}
         self.debug_images = bool(p['debug_images'])
         self.tracks_subs = {}
@@ -77,6 +79,11 @@ class CameraArbiterNode(Node):
 
     def on_quarter(self, source, msg):
         est = msg_to_estimate(msg, source=f'{self.camera}/{source}')
+        released = self.sync.last_released_ns
+        if released is not None and est.stamp_ns <= released and self.sent.get(est.stamp_ns) is not None:
+            # A quarter sent a frame's estimate again (the frame was re-published after a
+            # worker restart): this camera's pose of it again, for a restored general arbiter.
+            self.send(self.sent.get(est.stamp_ns))
         self.release(self.sync.add(source, est.stamp_ns, est, time.monotonic()))
 
     def poll(self):
@@ -94,12 +101,8 @@ class CameraArbiterNode(Node):
             fused = fuse_quarters([g.items[k] for k in sorted(g.items)], source=self.camera,
                                   **self.fusion_params)
             msg = estimate_to_msg(fused)
-            # With the general arbiter co-hosted, published only for other listeners (a
-            # recorder, a viewer): a publish without subscribers still costs.
-            if self.estimate_sink is None or self.pub.get_subscription_count() > 0:
-                self.pub.publish(msg)
-            if self.estimate_sink is not None:
-                self.estimate_sink(msg)
+            self.sent.add(g.stamp_ns, msg)
+            self.send(msg)
             ms = (time.thread_time() - t0) * 1e3
             level = 'warn' if g.missing or not fused.informative else 'ok'
             text = f'missing quarters: {", ".join(g.missing)}' if g.missing else fused.state
@@ -107,6 +110,14 @@ class CameraArbiterNode(Node):
                 f'ego_motion/{self.camera}/arbiter', level, text,
                 {'quarters': len(g.items), 'state': fused.state, 'arbiter_ms': ms},
                 hardware_id=self.camera), self.diag_sink, self.pub_diag)
+
+    def send(self, msg):
+        # With the general arbiter co-hosted, published only for other listeners (a
+        # recorder, a viewer): a publish without subscribers still costs.
+        if self.estimate_sink is None or self.pub.get_subscription_count() > 0:
+            self.pub.publish(msg)
+        if self.estimate_sink is not None:
+            self.estimate_sink(msg)
 
     # --- debug_images ----------------------------------------------------------------------
     def on_tracks(self, source, msg: Image):

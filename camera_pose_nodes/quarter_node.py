@@ -28,6 +28,7 @@ from std_msgs.msg import Int64MultiArray
 
 from camera_pose_nodes import kernel
 from camera_pose_nodes.camera_model import intrinsics_from_msg
+from multicam_ego_motion.ros_plumbing.recent_outputs import RecentOutputs
 from camera_pose_nodes.frame_schedule import FrameSchedule, ScheduleBook
 from camera_pose_nodes.map_scale import MapScaleCommand
 from camera_pose_nodes.image_conversion import bgr8_message, image_msg_to_gray
@@ -104,6 +105,7 @@ class QuarterNode(Node):
         self.pending = deque()          # images waiting for the previous frame's fused pose
         self.last_processed_ns = None
         self.last_fused_ns = None
+        self.sent = RecentOutputs()     # stamp -> estimate, sent again for a re-published image
         self.on_frame_done = None       # hook(node) after a fused pose was applied (snapshots)
         # hook(stamp, DiagnosticStatus) instead of publishing: a worker batches the statuses
         # of its quarters into one /diagnostics message per frame (worker.py)
@@ -206,6 +208,11 @@ class QuarterNode(Node):
                               'to be processed (duplicate or out of order)')
             return
         if self.last_processed_ns is not None and stamp_ns <= self.last_processed_ns:
+            sent = self.sent.get(stamp_ns)
+            if sent is not None:
+                # A re-published frame (a worker was restarted): the estimate again, for
+                # restored nodes downstream that lost it (the others drop the copy).
+                self.send_estimate(estimate_to_msg(sent))
             self.report_stale(msg, stamp_ns)
             return
         if not self.schedule.takes(stamp_ns):
@@ -375,17 +382,21 @@ class QuarterNode(Node):
                 return
         est = self.estimator.process_image(stamp_ns, gray)
         self.last_processed_ns = stamp_ns
+        self.sent.add(stamp_ns, est)
         msg = estimate_to_msg(est)
+        self.send_estimate(msg)
+        level = 'ok' if est.state == 'tracking' else 'warn'
+        self.publish_diag(msg.header.stamp, level, est.state, est)
+        if self.pub_tracks is not None:
+            self.publish_tracks(msg.header.stamp, est)
+
+    def send_estimate(self, msg):
         # With its camera arbiter co-hosted, published only for other listeners (a recorder,
         # a viewer): a publish without subscribers still cost ~0.2 ms.
         if self.estimate_sink is None or self.pub_pose.get_subscription_count() > 0:
             self.pub_pose.publish(msg)
         if self.estimate_sink is not None:
             self.estimate_sink(msg)
-        level = 'ok' if est.state == 'tracking' else 'warn'
-        self.publish_diag(msg.header.stamp, level, est.state, est)
-        if self.pub_tracks is not None:
-            self.publish_tracks(msg.header.stamp, est)
 
     def publish_tracks(self, stamp, est):
         """debug_images: this frame's tile (track_image.quarter_tile), after the estimate
@@ -422,7 +433,7 @@ class QuarterNode(Node):
         return {'estimator': self.estimator.get_state(), 'intrinsics': self.intrinsics,
                 'image_size': self.estimator.image_size,
                 'last_processed_ns': self.last_processed_ns, 'last_fused_ns': self.last_fused_ns,
-                'schedule': self.schedule.get_state(),
+                'schedule': self.schedule.get_state(), 'sent': self.sent.get_state(),
                 # stereo: the partner's CameraInfo and the images that came ahead of their frame
                 'partner_intrinsics': self.partner_intrinsics,
                 'partner_images': self.partner_grays()}
@@ -456,6 +467,7 @@ class QuarterNode(Node):
         self.last_processed_ns = s['last_processed_ns']
         self.last_fused_ns = s['last_fused_ns']
         self.schedule.set_state(s['schedule'])
+        self.sent.set_state(s.get('sent'))
 
     def publish_diag(self, stamp, level, message, est=None):
         values = {}

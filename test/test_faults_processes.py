@@ -155,6 +155,13 @@ def test_killed_worker_is_restarted_and_the_replay_completes(short_bag, tmp_path
     stamps = run.odometry()[0]
     assert len(stamps) == len(frame_stamps(short_bag))   # no frame lost
     assert run.odom_problems() == []
+    # Every frame fused from all four cameras, none after a sync timeout: the nodes that had
+    # the re-published frames already sent their estimates again. (Before, a restored general
+    # arbiter waited 10 s for the other worker's cameras and fused three frames without them.)
+    fused = run.diagnostics('ego_motion/general_arbiter')
+    assert len(fused) == len(stamps)
+    assert [(d.t, d.message) for d in fused
+            if d.values['cameras_missing'] or d.values['sync_timed_out'] != 'False'] == []
     assert run.leftover_processes() == []
 
 
