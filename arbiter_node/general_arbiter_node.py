@@ -18,7 +18,7 @@ from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
 
 from arbiter_node.general_fusion import PARAMETERS as FUSION_PARAMETERS
-from camera_pose_nodes.frame_schedule import FrameGovernor
+from camera_pose_nodes.frame_schedule import FrameGovernor, ScheduleBook
 from arbiter_node.general_fusion import GeneralFusion
 from arbiter_node.path_history import PathHistory
 from arbiter_node.stamp_sync import StampSynchronizer
@@ -76,6 +76,8 @@ class GeneralArbiterNode(Node):
         self.on_frame_done = None            # hook(node) after a frame was published (snapshots)
         self.diag_sink = None                # hook(stamp, status): the worker batches statuses per frame
         self.governor = FrameGovernor(p['max_lag_s'])
+        self.issued = ScheduleBook()         # the schedules published, for the frames they skip
+        self.off_schedule = 0                # camera estimates of skipped frames, left out
         # Latched: a quarter that starts or moves later still gets the schedule in force.
         self.pub_schedule = self.create_publisher(Int64MultiArray, '/ego_motion/frame_schedule', LATCHED)
         # Latched too: map rescales (map_scale), each applied from a given frame on.
@@ -116,6 +118,14 @@ class GeneralArbiterNode(Node):
 
     def on_camera(self, name, msg):
         est = msg_to_estimate(msg, source=name)
+        if not self.issued.takes(est.stamp_ns):
+            # A frame the schedule skips, from a camera whose quarters took it before the
+            # schedule reached them: the others skipped it, and fusing it would give /odom
+            # from part of the rig. (Its quarters do not wait for its fused pose: theirs
+            # skips it too by now.)
+            self.sync.saw(name, est.stamp_ns)
+            self.off_schedule += 1
+            return
         self.release(self.sync.add(name, est.stamp_ns, est, time.monotonic()))
 
     def on_reset(self, request, response):
@@ -173,6 +183,7 @@ class GeneralArbiterNode(Node):
                 'driver must stamp with the system clock; a replay must publish /clock and '
                 'run the general arbiter with use_sim_time)')
         if schedule is not None:
+            self.issued.add(schedule)
             self.pub_schedule.publish(Int64MultiArray(data=schedule.to_list()))
             self.get_logger().info(
                 f'behind the cameras: processing one frame in {schedule.stride} from '
@@ -197,13 +208,14 @@ class GeneralArbiterNode(Node):
         /ego_motion/path restarts after a restore (its history is not carried)."""
         return {'fusion': self.fusion, 'wheel': self.wheel,
                 'last_released_ns': self.sync.last_released_ns,
-                'governor': self.governor.get_state()}
+                'governor': self.governor.get_state(), 'issued': self.issued.get_state()}
 
     def set_state(self, s):
         self.fusion = s['fusion']
         self.wheel = s['wheel']
         self.sync.last_released_ns = s['last_released_ns']
         self.governor.set_state(s['governor'])
+        self.issued.set_state(s.get('issued'))
 
     def publish(self, fused, group, ms):
         stamp = ns_to_stamp(fused.stamp_ns)
@@ -245,6 +257,7 @@ class GeneralArbiterNode(Node):
              'scale_relative_std': round(float(fused.scale_relative_std), 6),
              'cameras_used': ','.join(fused.cameras_used), 'cameras_missing': ','.join(missing),
              'frame_stride': self.governor.stride, 'arbiter_ms': ms,
+             'estimates_off_schedule': self.off_schedule,
              'sync_timed_out': group.timed_out}), self.diag_sink, self.pub_diag)
 
 

@@ -73,10 +73,7 @@ class StampSynchronizer:
         self.recent: Dict[str, List[int]] = {}     # a source's last RECENT_STAMPS stamps
 
     def add(self, source: str, stamp_ns: int, item, now: float) -> List[Group]:
-        # Even a late estimate proves the source is alive: wait for it from the next frame on.
-        self.absent.discard(source)
-        self.unknown_misses.pop(source, None)
-        self._note_stamp(source, stamp_ns)
+        self.saw(source, stamp_ns)
         if self.last_released_ns is not None and stamp_ns <= self.last_released_ns:
             self.dropped_late += 1
             return self.poll(now)
@@ -84,6 +81,13 @@ class StampSynchronizer:
         group.put(source, stamp_ns, item)
         self._open.sort(key=lambda g: g.lo)
         return self.poll(now)
+
+    def saw(self, source: str, stamp_ns: int):
+        """The source reported this stamp (added, or left out by the caller): it is alive
+        (waited for from the next frame on), and past every earlier group."""
+        self.absent.discard(source)
+        self.unknown_misses.pop(source, None)
+        self._note_stamp(source, stamp_ns)
 
     def _note_stamp(self, source, stamp_ns):
         last = self.last_stamp.get(source)

@@ -310,6 +310,8 @@ class QuarterNode(Node):
             return True
         if self.last_fused_ns is not None and self.last_fused_ns >= self.last_processed_ns:
             return True
+        if not self.schedule.takes(self.last_processed_ns):
+            return True     # taken before the schedule came: no fused pose will come for it
         return time.monotonic() - first_wait > self.feedback_timeout_s
 
     def drain(self):

@@ -53,13 +53,18 @@ def test_every_quarter_follows_the_schedule_and_fused_frames_are_whole(overloade
     book = ScheduleBook()
     for m in read_topic(overloaded / 'output', '/ego_motion/frame_schedule'):
         book.add(FrameSchedule.from_list(m.data))
-    # Quarters take the frames the schedule takes, and little is fused from others: a
-    # schedule that started behind quarters running ahead of the fused poses left such frames
-    # (fused from part of the rig) for half the run under load. (None on a quiet machine; a
-    # few beside two CPU hogs, where a quarter can still outrun the newest estimate the
-    # general arbiter has seen.)
-    off = sorted(s for s in set(quarters) | odom if not book.takes(s))
-    assert len(off) <= 0.15 * len(odom), [(s, sorted(quarters[s])) for s in off][:5]
+    # No odometry from a frame the schedule skips: under load a schedule reaches some quarters
+    # after they took frames it skips (one worker's 8 quarters took up to 12 such frames beside
+    # a CPU hog), and the general arbiter leaves those estimates out rather than fuse the
+    # frame from part of the rig (before, such frames were a third of the /odom under load).
+    assert sorted(s for s in odom if not book.takes(s)) == []
+    diag = read_topic(overloaded / 'output', '/diagnostics')
+    left_out = max([int(kv.value) for m in diag for s in m.status if s.name == 'ego_motion/general_arbiter'
+                    for kv in s.values if kv.key == 'estimates_off_schedule'], default=0)
+    taken_off = sum(len(quarters[s]) for s in quarters if not book.takes(s))
+    # what quarters took off the schedule reached the general arbiter and was left out
+    # (camera estimates: at most one per camera and frame)
+    assert (left_out > 0) == (taken_off > 0), (left_out, taken_off)
     whole = [s for s in odom if len(quarters[s]) == 16]
     # A frame may still miss a camera now and then: rate mode drops what comes too late.
     assert len(whole) >= 0.5 * len(odom), (len(whole), len(odom))
