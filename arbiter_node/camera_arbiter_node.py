@@ -21,9 +21,9 @@ from multicam_ego_motion.ros_plumbing import diagnostics
 from multicam_ego_motion.ros_plumbing.lean_node import subscribe_remote
 from multicam_ego_motion.ros_plumbing.node_main import spin_node
 from multicam_ego_motion.ros_plumbing.node_parameters import declare_from_table
-from multicam_ego_motion.ros_plumbing.recent_outputs import RecentOutputs
 from multicam_ego_motion.ros_plumbing.pose_messages import estimate_to_msg, msg_to_estimate, ns_to_stamp, stamp_to_ns
 from multicam_ego_motion.ros_plumbing.qos import RELIABLE, RELIABLE_IMAGES
+from multicam_ego_motion.ros_plumbing.recent_outputs import RecentOutputs
 
 # Timeouts only: the normal path is driven by messages. Every timer wake-up makes rclpy's
 # executor rebuild its wait set over all of the worker's entities, so poll slowly.
@@ -79,11 +79,11 @@ class CameraArbiterNode(Node):
 
     def on_quarter(self, source, msg):
         est = msg_to_estimate(msg, source=f'{self.camera}/{source}')
-        released = self.sync.last_released_ns
-        if released is not None and est.stamp_ns <= released and self.sent.get(est.stamp_ns) is not None:
+        sent = self.sent.get(est.stamp_ns)        # (only released frames are kept)
+        if sent is not None:
             # A quarter sent a frame's estimate again (the frame was re-published after a
             # worker restart): this camera's pose of it again, for a restored general arbiter.
-            self.send(self.sent.get(est.stamp_ns))
+            self.send(sent)
         self.release(self.sync.add(source, est.stamp_ns, est, time.monotonic()))
 
     def poll(self):

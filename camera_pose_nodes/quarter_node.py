@@ -28,7 +28,6 @@ from std_msgs.msg import Int64MultiArray
 
 from camera_pose_nodes import kernel
 from camera_pose_nodes.camera_model import intrinsics_from_msg
-from multicam_ego_motion.ros_plumbing.recent_outputs import RecentOutputs
 from camera_pose_nodes.frame_schedule import FrameSchedule, ScheduleBook
 from camera_pose_nodes.map_scale import MapScaleCommand
 from camera_pose_nodes.image_conversion import bgr8_message, image_msg_to_gray
@@ -39,6 +38,7 @@ from multicam_ego_motion.ros_plumbing.node_main import spin_node
 from multicam_ego_motion.ros_plumbing.node_parameters import declare_from_table
 from multicam_ego_motion.ros_plumbing.pose_messages import estimate_to_msg, msg_to_estimate, stamp_to_ns
 from multicam_ego_motion.ros_plumbing.qos import LATCHED, RELIABLE, RELIABLE_IMAGES, image_qos
+from multicam_ego_motion.ros_plumbing.recent_outputs import RecentOutputs
 from multicam_ego_motion.geometry.rig import load_rig
 
 # Timeouts only: the normal path is driven by messages. Every timer wake-up makes rclpy's

@@ -39,13 +39,9 @@ def rig_bag(folder: Path, name: str) -> Path:
 
 def sync_timeouts(run_out: Path) -> int:
     """Frames the general arbiter released on its sync timeout (its /diagnostics)."""
-    from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
-    n = 0
-    for _, m, _ in Rosbag2Reader(Path(run_out) / 'output').decoded(['/diagnostics']):
-        for s in m.status:
-            if s.name == 'ego_motion/general_arbiter':
-                n += any(kv.key == 'sync_timed_out' and kv.value == 'True' for kv in s.values)
-    return n
+    from multicam_ego_motion.bench.measures import read_statuses
+    return sum(1 for name, values in read_statuses(Path(run_out) / 'output')
+               if name == 'ego_motion/general_arbiter' and values.get('sync_timed_out') == 'True')
 
 
 def free_running(bags_folder: Path, out: Path, params) -> list:

@@ -11,8 +11,8 @@ point, the targets, one row each with met or missed (targets.py), and the paper'
 (parallel_time_model) fed with the median stage times measured in the M = 2 lockstep run,
 next to the paper's Fig. 6(d), and under the title how fast the machine is on fixed reference
 work (machine_speed.py), so that runs on different machines compare. Measured, not asserted.
-The VGA bags are generated on first use into --camera-rate-bags and reused; a worker killed mid-run (worker_crash.py: time to
-restore), and the two-host row (two_hosts.py: M = 2 with the second worker in another
+The VGA bags are generated on first use into --camera-rate-bags and reused; a worker killed
+mid-run (worker_crash.py: time to restore), and the two-host row (two_hosts.py: M = 2 with the second worker in another
 network namespace, i.e. across UDP and a TCP control channel, beside the one-host M = 2 row;
 skipped with the reason where namespaces cannot be made). --skip-camera-rate,
 --skip-live-vs-offline, --skip-worker-crash and --skip-two-hosts leave out the long parts.

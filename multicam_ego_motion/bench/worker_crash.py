@@ -37,13 +37,9 @@ class CrashFigures:
 
 def partial_frames(run_out: Path) -> int:
     """Frames the general arbiter fused without some camera (its /diagnostics)."""
-    from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
-    n = 0
-    for _, m, _ in Rosbag2Reader(Path(run_out) / 'output').decoded(['/diagnostics']):
-        for s in m.status:
-            if s.name == 'ego_motion/general_arbiter':
-                n += any(kv.key == 'cameras_missing' and kv.value for kv in s.values)
-    return n
+    from multicam_ego_motion.bench.measures import read_statuses
+    return sum(1 for name, values in read_statuses(Path(run_out) / 'output')
+               if name == 'ego_motion/general_arbiter' and values.get('cameras_missing'))
 
 
 def worker_crash(bag, out: Path, rig, rig_file, params, n_frames: int, duration=None) -> CrashFigures:
