@@ -8,7 +8,9 @@ part of the image with its tracks drawn, for the camera arbiter's /<cam>/tracks:
 
 Frame ordering: the estimate of frame t+1 needs the fused pose of frame t. An image that
 arrives before that feedback waits (up to `feedback_timeout_s`), so that replay in lockstep
-is deterministic and rate mode degrades gracefully instead of stalling.
+is deterministic and rate mode degrades gracefully instead of stalling. A fused pose that
+comes before its frame's image (the general arbiter went ahead without this camera) is kept
+and applied right after that image is processed.
 
 Stereo pairs (the rig's stereo_pairs): the quarter also takes its partner camera's image and
 CameraInfo, and applies the fused pose of frame t only with the partner's image of t (held
@@ -44,6 +46,7 @@ from multicam_ego_motion.geometry.rig import load_rig
 # Timeouts only: the normal path is driven by messages. Every timer wake-up makes rclpy's
 # executor rebuild its wait set over all of the worker's entities, so poll slowly.
 POLL_PERIOD_S = 0.1
+FUSED_AHEAD_KEPT = 4            # fused poses held for frames whose image has not come yet
 
 NODE_PARAMETERS = {
     'camera': ('front', 'name of the camera in the rig file', None, None),
@@ -105,6 +108,10 @@ class QuarterNode(Node):
         self.pending = deque()          # images waiting for the previous frame's fused pose
         self.last_processed_ns = None
         self.last_fused_ns = None
+        # Fused poses of frames whose image has not come yet (the general arbiter went ahead
+        # without this camera): applied once the image is processed, or it would wait for them
+        # again (feedback_timeout_s, 60 s in lockstep) and drop out of the fusion.
+        self.fused_ahead = {}           # stamp -> fused msg
         self.sent = RecentOutputs()     # stamp -> estimate, sent again for a re-published image
         self.on_frame_done = None       # hook(node) after a fused pose was applied (snapshots)
         # hook(stamp, DiagnosticStatus) instead of publishing: a worker batches the statuses
@@ -244,8 +251,11 @@ class QuarterNode(Node):
             self.estimator.rescale_command(command)
 
     def on_fused(self, msg: PoseWithCovarianceStamped):
-        if self.estimator is not None and not self.estimator.takes_feedback(stamp_to_ns(msg.header.stamp)):
-            return                      # another camera's capture time (free-running cameras)
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        if self.estimator is not None and not self.estimator.takes_feedback(stamp_ns):
+            if self.last_processed_ns is not None and stamp_ns > self.last_processed_ns:
+                self.hold_fused_ahead(stamp_ns, msg)
+            return                      # (else another camera's capture time: free-running cameras)
         if self.partner is not None and self.estimator is not None:
             # Stereo: applied with the partner's image of the same frame (apply_held), as
             # the sequential pipeline does, whichever of the two arrives first
@@ -283,6 +293,28 @@ class QuarterNode(Node):
         for k in [k for k in self.partner_images if k <= stamp_ns]:
             del self.partner_images[k]
         self.apply_fused(msg, gray)
+
+    def hold_fused_ahead(self, stamp_ns: int, msg):
+        # Also what free-running cameras' other capture times look like: those are dropped
+        # when this quarter's next own frame is processed (apply_fused_ahead).
+        self.fused_ahead[stamp_ns] = msg
+        while len(self.fused_ahead) > FUSED_AHEAD_KEPT:
+            del self.fused_ahead[min(self.fused_ahead)]
+
+    def apply_fused_ahead(self, stamp_ns: int):
+        """After frame `stamp_ns` was processed: its fused pose if it came before its image."""
+        if not self.fused_ahead:
+            return
+        msg = None
+        for k in [k for k in self.fused_ahead if k <= stamp_ns]:
+            m = self.fused_ahead.pop(k)
+            if k == stamp_ns:
+                msg = m
+        if msg is not None:
+            self.get_logger().warning(
+                f'{self.source}: the fused pose of frame {stamp_ns / 1e9:.6f} s came before its image '
+                '(fused without this camera): applied after the image', throttle_duration_sec=5.0)
+            self.on_fused(msg)
 
     def apply_fused(self, msg: PoseWithCovarianceStamped, partner_gray):
         fused = decode_fused(msg)
@@ -391,6 +423,7 @@ class QuarterNode(Node):
         self.publish_diag(msg.header.stamp, level, est.state, est)
         if self.pub_tracks is not None:
             self.publish_tracks(msg.header.stamp, est)
+        self.apply_fused_ahead(stamp_ns)
 
     def send_estimate(self, msg):
         # With its camera arbiter co-hosted, published only for other listeners (a recorder,

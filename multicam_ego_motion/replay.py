@@ -463,6 +463,8 @@ def run(args) -> int:
     print(f'coordinator: {st.migrations} migrations ({st.rebalances} rebalances), '
           f'{st.restarts} worker restarts'
           + (f' (restored in {", ".join(f"{t:.2f}" for t in st.restore_s)} s)' if st.restore_s else '')
-          + (f', frames re-published {g.playback.republished}' if g.playback else ''), flush=True)
+          + (f', frames re-published {g.playback.republished}' if g.playback else '')
+          + (f', frames let out while an older one stalled {g.playback.published_ahead}'
+             if g.playback and g.playback.published_ahead else ''), flush=True)
     return summarize(args.bag, reader, out, g.counts, g.playback, g.wall_s, g.total_s,
                      args.ground_truth_topic)

@@ -112,13 +112,14 @@ def test_bench_help_lists_the_skip_options():
 def test_crash_row_reports_the_restore_and_what_was_published_again():
     from multicam_ego_motion.bench.worker_crash import CrashFigures
     lines = CrashFigures(frames=161, odom=161, restore_s=[0.71], republished=1, wall_ms_per_frame=40.0,
-                         longest_gap_s=1.234, partial=2, hosted_general=True).lines()
+                         longest_gap_s=1.234, partial=2, hosted_general=True, published_ahead=3).lines()
     text = '\n'.join(lines)
     assert '| killed after frame | 53 of 161 |' in text and '| time to restore its nodes on the spare [s] | 0.71 |' in text
     assert '| frames with /odom | 161 of 161 |' in text and '| frames published again | 1 |' in text
     assert '| longest wait between two /odom [s] | 1.23 |' in text
     assert '| of those, fused without some camera | 2 |' in text
     assert '| it hosted the general arbiter | yes |' in text
+    assert '| frames let out while an older one stalled (2 s without /odom) | 3 |' in text
     assert 'none (not restored)' in '\n'.join(CrashFigures(10, 3, [], 0, 1.0).lines())
 
 

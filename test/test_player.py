@@ -157,27 +157,55 @@ class LaggingRecipient(Recipient):
                 self.acked.add(s)
 
 
+def _play_lagging(bag, recipient, *args):
+    """Play the bag in lockstep into a LaggingRecipient: every message once and in order.
+    Returns the player's stderr."""
+    with recipient.lock:
+        recipient.images_per_stamp.clear()
+        recipient.complete, recipient.acked = [], set()
+    proc = run_cli('play', bag, '--lockstep', *args, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    time.sleep(0.3)
+    with recipient.lock:
+        assert recipient.received == _expected(bag)
+        assert recipient.complete == [T0 + k * PERIOD for k in range(N_FRAMES)]
+    return proc.stderr
+
+
+def _depth_one_without_stall_ahead_waits_for_ever(bag, recipient):
+    with recipient.lock:
+        recipient.images_per_stamp.clear()
+        recipient.complete, recipient.acked = [], set()
+    proc = run_cli('play', bag, '--lockstep', '--ack-timeout', '2', '--stall-ahead', '0', timeout=60)
+    assert proc.returncode != 0 and 'frame 2 ' in proc.stderr \
+        and 'was not acknowledged' in proc.stderr, proc.stderr
+
+
 def test_lockstep_depth_two_sends_the_next_frame_before_the_ack(bag, rclpy_context):
     """--lockstep-depth 2: a graph that answers frame k only after frame k + 1 arrived is
     served (depth 1 would wait for it forever), never more than two frames ahead, every
     message once and in order."""
-    expected = _expected(bag)
-    recipient = LaggingRecipient(list(expected))
+    recipient = LaggingRecipient(list(_expected(bag)))
     try:
-        proc = run_cli('play', bag, '--lockstep', '--lockstep-depth', '2', '--ack-timeout', '10',
-                       timeout=60)
-        assert proc.returncode == 0, proc.stderr
-        time.sleep(0.3)
+        _play_lagging(bag, recipient, '--lockstep-depth', '2', '--ack-timeout', '10')
         with recipient.lock:
-            assert recipient.received == expected
             assert recipient.too_many == []
-            assert recipient.complete == [T0 + k * PERIOD for k in range(N_FRAMES)]
-        with recipient.lock:
-            recipient.images_per_stamp.clear()
-            recipient.complete, recipient.acked = [], set()
-        proc = run_cli('play', bag, '--lockstep', '--ack-timeout', '2', timeout=60)
-        assert proc.returncode != 0 and 'frame 2 ' in proc.stderr \
-            and 'was not acknowledged' in proc.stderr, proc.stderr
+        _depth_one_without_stall_ahead_waits_for_ever(bag, recipient)
+    finally:
+        recipient.close()
+
+
+def test_lockstep_lets_the_next_frame_out_when_a_frame_stalls(bag, rclpy_context):
+    """A frame whose sample sits in the transport until the next one on its topic is written
+    (the recipient sees frame k only with frame k + 1) is not waited for until the ack timeout:
+    after --stall-ahead the next frame goes out, which brings it. Every message once and in
+    order."""
+    recipient = LaggingRecipient(list(_expected(bag)))
+    try:
+        err = _play_lagging(bag, recipient, '--ack-timeout', '20', '--stall-ahead', '0.3')
+        # frames 1 .. N - 2 each waited for the next one (frame 0 and the last are acked at once)
+        assert f'({N_FRAMES - 2} let out while an older frame stalled)' in err, err
+        _depth_one_without_stall_ahead_waits_for_ever(bag, recipient)
     finally:
         recipient.close()
 
@@ -239,3 +267,4 @@ def test_bad_input_is_one_line_error(case, bag, tmp_path):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and expect in lines[0] and lines[0].startswith('ego-motion: error:'), \
         proc.stderr
+

@@ -91,3 +91,36 @@ def test_a_quarter_follows_the_frame_schedule(rclpy_context):
     finally:
         node.estimator.close()
         node.destroy_node()
+
+
+def test_a_fused_pose_that_comes_before_its_image_is_applied_after_it(rclpy_context):
+    """The general arbiter fused frame 2 without this camera (its image came late): the fused
+    pose of frame 2 comes first. It is applied once image 2 is processed, so frame 3 goes on
+    at once instead of waiting for a fused pose that already came (the camera then dropped
+    out of the fusion for good). A fused pose at another camera's capture time (free-running
+    cameras) is never applied."""
+    info, images = _front_frames(5)
+    stamps = [stamp_to_ns(m.header.stamp) for m in images]
+    node, processed, diag = _quarter()
+    try:
+        node.on_info(info)
+        node.on_image(images[0])
+        node.on_fused(fused_msg(stamps[0], 0.0))
+        node.on_image(images[1])
+        node.on_fused(fused_msg(stamps[1], 0.1))
+        assert processed == stamps[:2]
+        node.on_fused(fused_msg(stamps[2], 0.2))            # ahead of image 2
+        node.on_fused(fused_msg(stamps[3] + 4_000_000, 0.3))  # another camera's capture time
+        assert stamps[2] not in node.estimator.fused_poses
+        node.on_image(images[2])
+        assert processed == stamps[:3] and stamps[2] in node.estimator.fused_poses
+        assert node.last_fused_ns == stamps[2]
+        node.on_image(images[3])                            # no wait for feedback
+        assert processed == stamps[:4] and not node.pending
+        node.on_fused(fused_msg(stamps[3], 0.3))
+        node.on_image(images[4])
+        assert processed == stamps[:5]
+        assert stamps[3] + 4_000_000 not in node.estimator.fused_poses and not node.fused_ahead
+    finally:
+        node.estimator.close()
+        node.destroy_node()

@@ -11,7 +11,10 @@ Two modes:
   a message whose header.stamp is at or after the frame's stamp (the newest header stamp
   among the frame's trigger messages), or, for an ack type without a header, any message
   received after the frame was published. No acknowledgement within `--ack-timeout` is an
-  error that names the frame. Deterministic and drop-free; used by tests and `replay`.
+  error that names the frame. A frame not acknowledged after `--stall-ahead` seconds (2) lets
+  the next frame out, up to two more: a graph that lost an image (or whose image sits in the
+  transport until the next sample is written) goes on. Deterministic and drop-free; used by
+  tests and `replay`.
 
 A *frame* is a run of consecutive messages with the same log time: a rig driver (and the
 scenario generator) stamps and logs the images of one exposure together, so the cameras of
@@ -67,6 +70,14 @@ DEFAULT_LOCKSTEP_PATTERN = '*/image_raw'
 NS_PER_S = 1_000_000_000
 MATCH_SETTLE_S = 0.2
 REPUBLISH_PERIOD_S = 0.5
+# Lockstep: a frame not acknowledged after this long lets the next frame out (up to
+# STALL_AHEAD_FRAMES more in flight). A reliable sample can sit in the transport until the
+# next sample on its topic is written (seen after a worker was killed: one camera's image
+# stuck for the general arbiter's whole 10 s sync timeout, never repaired by DDS); a live
+# camera writes that next sample a frame later, a lockstep player never did. Each node still
+# takes the frames in order, so the output is the same as without.
+STALL_S = 2.0
+STALL_AHEAD_FRAMES = 2
 
 
 @dataclass
@@ -80,6 +91,8 @@ class PlayOptions:
     # (the graph pipelines: its quarters compute the next optical flow meanwhile). Each node
     # still takes the frames in order, so the output is the same. Needs a stamped ack type.
     lockstep_depth: int = 1
+    # lockstep: a frame not acknowledged after this long lets the next one out (STALL_S; 0: never)
+    stall_ahead_s: float = STALL_S
     lockstep_topics: Optional[List[str]] = None   # bag topic names; None: every */image_raw
     sync_window_s: float = 0.0    # lockstep: a frame spans this much log time (free-running cameras)
     remap: Dict[str, str] = field(default_factory=dict)  # bag topic -> published topic
@@ -124,6 +137,7 @@ class PlaybackResult:
     wall_time_s: float = 0.0
     published_at: Dict[int, float] = field(default_factory=dict)  # trigger stamp -> monotonic s
     republished: int = 0              # frames published again after a graph restart
+    published_ahead: int = 0          # lockstep: frames let out while an older one stalled (STALL_S)
 
 
 def parse_remaps(items: Iterable[str]) -> Dict[str, str]:
@@ -181,6 +195,8 @@ class BagPlayer:
             raise UserError(f'--sync-window must be within 0 and 1 s (got {opts.sync_window_s})')
         if opts.lockstep_depth < 1:
             raise UserError(f'--lockstep-depth must be at least 1 (got {opts.lockstep_depth})')
+        if not opts.stall_ahead_s >= 0:
+            raise UserError(f'--stall-ahead must be >= 0 seconds (got {opts.stall_ahead_s})')
         if opts.start_offset_s < 0 or (opts.duration_s is not None and opts.duration_s <= 0):
             raise UserError('--start-offset must be >= 0 and --duration > 0')
         self.reader = Rosbag2Reader(bag)
@@ -209,6 +225,7 @@ class BagPlayer:
         self._ack_stamp_ns = None
         self._ack_stamped = False
         self._republish = threading.Event()
+        self._ack_deadline = {}       # lockstep: frame index -> when its ack timeout ends
         self._publishers = {}
         self.result: Optional[PlaybackResult] = None   # while and after playing
         self._played_s = 0.0
@@ -319,6 +336,8 @@ class BagPlayer:
         depth = opts.lockstep_depth if self._ack_stamped else 1
         in_flight = deque()           # trigger frames published, not yet acknowledged
         any_acked = False
+        ahead = 0                     # frames let out beyond the depth while the oldest stalls
+        self._ack_deadline.clear()
         read_error = []
 
         def frames():
@@ -352,10 +371,17 @@ class BagPlayer:
                 if opts.lockstep and frame.is_trigger:
                     in_flight.append(frame)
                     # The first frame alone: the graph's first answer shows it is listening.
-                    while len(in_flight) >= (depth if any_acked else 1):
-                        result.republished += self._await_ack(in_flight, acks_before, publishers)
+                    while len(in_flight) >= (depth + ahead if any_acked else 1):
+                        stall_s = (opts.stall_ahead_s if opts.stall_ahead_s > 0 and any_acked
+                                   and ahead < STALL_AHEAD_FRAMES else None)
+                        n = self._await_ack(in_flight, acks_before, publishers, stall_s)
+                        if n is None:           # stalled: let the next frame out
+                            ahead += 1
+                            result.published_ahead += 1
+                            break
+                        result.republished += n
                         acked_trigger = in_flight.popleft().index
-                        any_acked = True
+                        any_acked, ahead = True, 0
                 now_s = (frame.log_time_ns - self.start_ns) / NS_PER_S
                 bar.update(now_s - done_s)
                 done_s = self._played_s = now_s
@@ -368,7 +394,9 @@ class BagPlayer:
             bar.close()
         result.wall_time_s = time.monotonic() - t0_wall
         log.info(f'played {result.messages} messages in {result.frames} frames '
-                 f'in {result.wall_time_s:.2f} s')
+                 f'in {result.wall_time_s:.2f} s'
+                 + (f' ({result.published_ahead} let out while an older frame stalled)'
+                    if result.published_ahead else ''))
         return result
 
     def _subscribe_ack(self, node):
@@ -422,11 +450,13 @@ class BagPlayer:
         # sent before it has is dropped by it (rate mode lost its first message that way).
         self._wait(lambda: False, MATCH_SETTLE_S)
 
-    def _await_ack(self, in_flight, acks_before: int, publishers=None) -> int:
+    def _await_ack(self, in_flight, acks_before: int, publishers=None, stall_s=None) -> Optional[int]:
         """Wait for the acknowledgement of the oldest frame in flight; returns how often the
-        frames in flight were published again."""
+        frames in flight were published again, or None when `stall_s` passed without it
+        (the frame's ack timeout keeps running from its first wait)."""
         opts = self.options
         frame = in_flight[0]
+        deadlines = self._ack_deadline
 
         def acknowledged():
             if self._ack_stamped:
@@ -436,10 +466,14 @@ class BagPlayer:
         def acknowledged_or_restart():
             return acknowledged() or self._republish.is_set()
 
-        deadline = time.monotonic() + opts.ack_timeout_s
+        deadline = deadlines.setdefault(frame.index, time.monotonic() + opts.ack_timeout_s)
         republished = 0
+        if stall_s is not None and not self._wait(acknowledged_or_restart, min(stall_s, deadline - time.monotonic())) \
+                and time.monotonic() < deadline:
+            return None
         while self._wait(acknowledged_or_restart, deadline - time.monotonic()):
             if acknowledged():
+                deadlines.pop(frame.index, None)
                 return republished
             if republished == 0:
                 # The restored graph gets the whole timeout from its restore on.
@@ -454,6 +488,7 @@ class BagPlayer:
             republished += 1
             if self._wait(acknowledged, REPUBLISH_PERIOD_S):
                 self._republish.clear()
+                deadlines.pop(frame.index, None)
                 return republished
         topics = sorted({m.topic for m in frame.messages if m.topic in self.trigger_topics})
         raise UserError(
@@ -505,6 +540,10 @@ def configure_parser(parser: argparse.ArgumentParser):
     parser.add_argument('--lockstep-depth', type=int, default=1, metavar='N',
                         help='lockstep: frames published before the oldest is acknowledged '
                              '(default 1; 2 lets a pipelining graph work ahead)')
+    parser.add_argument('--stall-ahead', type=float, default=STALL_S, metavar='S',
+                        help=f'lockstep: a frame not acknowledged after S seconds lets the next '
+                             f'frame out, up to {STALL_AHEAD_FRAMES} more (a sample stuck in the transport '
+                             f'comes with the next one; default {STALL_S:g}, 0: never)')
     parser.add_argument('--lockstep-topics', nargs='+', metavar='TOPIC',
                         help=f'lockstep trigger topics (default: every {DEFAULT_LOCKSTEP_PATTERN})')
     parser.add_argument('--sync-window', type=float, default=0.0, metavar='S',
@@ -529,7 +568,8 @@ def configure_parser(parser: argparse.ArgumentParser):
 def options_from_args(args) -> PlayOptions:
     return PlayOptions(lockstep=args.lockstep, rate=args.rate, ack_topic=args.ack_topic,
                        ack_timeout_s=args.ack_timeout, lockstep_topics=args.lockstep_topics,
-                       lockstep_depth=args.lockstep_depth, sync_window_s=args.sync_window,
+                       lockstep_depth=args.lockstep_depth, stall_ahead_s=args.stall_ahead,
+                       sync_window_s=args.sync_window,
                        remap=parse_remaps(args.remap), start_offset_s=args.start_offset,
                        duration_s=args.duration, topics=args.topics, clock=args.clock,
                        progress=args.progress, discovery_s=args.discovery)

@@ -21,6 +21,7 @@ class CrashFigures:
     longest_gap_s: float = 0.0           # between two /odom, wall
     partial: int = 0                     # frames fused without some camera
     hosted_general: bool = False         # the killed worker hosted the general arbiter
+    published_ahead: int = 0             # frames the player let out while an older one stalled
 
     def lines(self) -> List[str]:
         restore = ', '.join(f'{t:.2f}' for t in self.restore_s) or 'none (not restored)'
@@ -30,6 +31,7 @@ class CrashFigures:
                 f'| time to restore its nodes on the spare [s] | {restore} |',
                 f'| longest wait between two /odom [s] | {self.longest_gap_s:.2f} |',
                 f'| frames published again | {self.republished} |',
+                f'| frames let out while an older one stalled (2 s without /odom) | {self.published_ahead} |',
                 f'| frames with /odom | {self.odom} of {self.frames} |',
                 f'| of those, fused without some camera | {self.partial} |',
                 f'| wall per frame, whole run [ms] | {self.wall_ms_per_frame:.1f} |']
@@ -56,4 +58,4 @@ def worker_crash(bag, out: Path, rig, rig_file, params, n_frames: int, duration=
     hosted = g.coordinator.placement.get('general_arbiter') == WORKERS - 1
     return CrashFigures(frames, g.counts.get('/odom', 0), list(g.coordinator.stats.restore_s),
                         int(g.playback.republished), g.frames_wall_s / max(frames, 1) * 1e3,
-                        gap, partial_frames(run_out), hosted)
+                        gap, partial_frames(run_out), hosted, int(g.playback.published_ahead))
