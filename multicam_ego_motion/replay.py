@@ -44,7 +44,8 @@ def configure_parser(p):
     p.add_argument('--sync-window', type=float, default=None, metavar='S',
                    help='free-running cameras: images within S seconds are one frame, fused at '
                         'its latest stamp (the general arbiter\'s sync_window_s, and the lockstep '
-                        'player\'s frames; default: the params file\'s value)')
+                        'player\'s frames; default: the params file\'s value, or when that is 0, '
+                        'found from the bag\'s image stamps)')
     add_remote_arguments(p)
     p.add_argument('--debug-images', action='store_true',
                    help='draw the tracker (the nodes\' debug_images parameter) and record each '
@@ -167,6 +168,25 @@ def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False,
         overrides['quarter']['debug_images'] = True
         overrides['camera_arbiter']['debug_images'] = True
     return overrides
+
+
+def detected_sync_window(reader, rig, params):
+    """The grouping window of free-running cameras, from the bag's image stamps, when the
+    params file sets none (None: leave the params file's value)."""
+    from multicam_ego_motion.bag.capture_spread import bag_capture_spread
+    from multicam_ego_motion.params_file import sync_window_from
+    if sync_window_from(params) > 0:
+        return None
+    spread = bag_capture_spread(reader, [c.image_topic for c in rig.cameras])
+    if spread.window_s == 0:
+        return None
+    if not spread.groupable:
+        print(f'replay: warning: {spread.describe()}: no window groups them into frames (it would '
+              'have to stay under half the period); each image is fused on its own', flush=True)
+        return None
+    print(f'replay: {spread.describe()}: free-running, grouped by a sync window of '
+          f'{spread.window_s:g} s (--sync-window sets another)', flush=True)
+    return spread.window_s
 
 
 def recorded_topics(rig, debug_images: bool = False):
@@ -452,12 +472,15 @@ def run(args) -> int:
     if missing:
         print(f'replay: cameras without topics in the bag (the graph runs on the others): '
               f'{", ".join(missing)}', flush=True)
+    sync_window = args.sync_window
+    if sync_window is None:
+        sync_window = detected_sync_window(reader, rig, params)
     g = run_graph(args.bag, out, rig, rig_file, params, args.workers, lockstep=lockstep,
                   rate=args.rate or 1.0, use_wheel=not args.no_wheel, ack_timeout=args.ack_timeout,
                   start_offset=args.start_offset, duration=args.duration,
                   migrate_every=args.migrate_every, rebalance=not args.no_rebalance,
                   logger=lambda t: print(t, flush=True), lockstep_depth=args.lockstep_depth,
-                  debug_images=args.debug_images, sync_window_s=args.sync_window, remote=remote,
+                  debug_images=args.debug_images, sync_window_s=sync_window, remote=remote,
                   kill_worker_at=args.kill_worker_at)
     st = g.coordinator.stats
     print(f'coordinator: {st.migrations} migrations ({st.rebalances} rebalances), '

@@ -1,0 +1,44 @@
+"""The capture spread of a rig's cameras and the grouping window found from it (ROS-free)."""
+import pytest
+
+from multicam_ego_motion.bag.capture_spread import capture_spread
+
+PERIOD = 66_666_667          # 15 Hz
+MS = 1_000_000
+
+
+def rig(offsets_ms, frames=30, period=PERIOD, start=0):
+    return {f'/cam{i}/image_raw': [start + k * period + o * MS for k in range(frames)]
+            for i, o in enumerate(offsets_ms)}
+
+
+def test_synchronised_cameras_need_no_window():
+    s = capture_spread(rig([0, 0, 0, 0]))
+    assert (s.spread_ns, s.window_s, s.groupable) == (0, 0.0, True) and s.period_ns == PERIOD
+
+
+def test_free_running_cameras_get_a_window_above_their_spread():
+    s = capture_spread(rig([0, 8, 16, 24]))
+    assert s.spread_ns == 24 * MS and s.window_s == pytest.approx(0.031) and s.groupable
+    # the same rig recorded from the middle of a frame (the first images are the late cameras)
+    late_start = {t: v[1:] if i < 2 else v for i, (t, v) in enumerate(rig([0, 8, 16, 24]).items())}
+    assert capture_spread(late_start).spread_ns == 24 * MS
+
+
+def test_cameras_at_different_rates_with_common_instants_need_no_window():
+    half = PERIOD // 2
+    stamps = {**rig([0, 0], frames=60, period=half), '/c/image_raw': [2 * k * half for k in range(30)]}
+    s = capture_spread(stamps)
+    assert s.spread_ns == 0 and s.window_s == 0.0 and s.period_ns == half
+
+
+def test_a_spread_near_half_the_period_cannot_be_grouped():
+    s = capture_spread(rig([0, 30]))
+    assert s.spread_ns == 30 * MS and not s.groupable
+    assert 'up to 30.0 ms apart (shortest frame period 66.7 ms)' in s.describe()
+
+
+def test_too_little_to_tell():
+    assert capture_spread({}).window_s == 0.0
+    assert capture_spread({'/a': [0]}).window_s == 0.0
+    assert capture_spread(rig([0, 8], frames=1)).window_s == 0.0
