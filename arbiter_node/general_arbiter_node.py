@@ -17,6 +17,7 @@ from std_msgs.msg import Int64MultiArray
 from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
 
+from arbiter_node.capture_spread import WindowLearner
 from arbiter_node.general_fusion import PARAMETERS as FUSION_PARAMETERS
 from camera_pose_nodes.frame_schedule import FrameGovernor, ScheduleBook
 from arbiter_node.general_fusion import GeneralFusion
@@ -49,6 +50,7 @@ NODE_PARAMETERS = {
     'wheel_odometry_topic': ('/wheel/odom', 'wheel odometry (nav_msgs/Odometry)', None, None),
     'sync_timeout_s': (0.5, 'longest wait for all cameras of one frame', 0.0, 60.0),
     'sync_window_s': (0.0, 'free-running cameras: estimates whose stamps lie within this of one another are one frame, fused at its latest stamp (each moved there with the EKF\'s twist); 0 = identical stamps only (hardware-synchronised rig). Above the rig\'s capture spread, below half a frame period; a lockstep player must group frames by the same window', 0.0, 1.0),
+    'learn_sync_window': (True, 'with sync_window_s 0: learn the window from the cameras\' first estimates (arbiter_node/capture_spread) when their stamps differ, use it from then on and say which sync_window_s to set', None, None),
     'wheel_wait_s': (0.5, 'then the longest wait for the wheel reading of that frame (while a wheel publisher is connected)', 0.0, 60.0),
     'path_max_poses': (5000, 'poses kept on /ego_motion/path (oldest dropped)', 1, 1000000),
     'path_min_spacing_m': (0.05, '/ego_motion/path keeps a pose every this many metres', 0.0, 100.0),
@@ -70,6 +72,10 @@ class GeneralArbiterNode(Node):
         self.fusion = GeneralFusion(self.rig, fusion_params)
         self.sync = StampSynchronizer(self.rig.names, p['sync_timeout_s'],
                                       window_ns=int(round(p['sync_window_s'] * 1e9)))
+        # Free-running cameras on a rig configured as synchronised: every image would be a
+        # frame of its own (fused alone, after the sync timeout).
+        self.window_learner = (WindowLearner() if p['learn_sync_window'] and self.sync.window_ns == 0
+                               else None)
         self.wheel = WheelBuffer()
         self.path = PathHistory(p['path_min_spacing_m'], p['path_min_turn_rad'], p['path_max_poses'],
                                 p['path_publish_period_s'])
@@ -118,6 +124,8 @@ class GeneralArbiterNode(Node):
 
     def on_camera(self, name, msg):
         est = msg_to_estimate(msg, source=name)
+        if self.window_learner is not None:
+            self.learn_window(name, est.stamp_ns)
         if not self.issued.takes(est.stamp_ns):
             # A frame the schedule skips, from a camera whose quarters took it before the
             # schedule reached them: the others skipped it, and fusing it would give /odom
@@ -127,6 +135,21 @@ class GeneralArbiterNode(Node):
             self.off_schedule += 1
             return
         self.release(self.sync.add(name, est.stamp_ns, est, time.monotonic()))
+
+    def learn_window(self, name, stamp_ns):
+        spread = self.window_learner.add(name, stamp_ns)
+        if spread is None:
+            return
+        self.window_learner = None
+        if spread.window_s == 0:
+            return
+        if not spread.groupable:
+            self.get_logger().warn(f'{spread.describe()}: no sync window groups them into frames; '
+                                   'each estimate is fused on its own')
+            return
+        self.sync.window_ns = int(round(spread.window_s * 1e9))
+        self.get_logger().warn(f'{spread.describe()}: free-running, grouped by a sync window of '
+                               f'{spread.window_s:g} s from now on (set sync_window_s to that)')
 
     def on_reset(self, request, response):
         self.fusion.reset()
@@ -207,13 +230,16 @@ class GeneralArbiterNode(Node):
         """Picklable state: the fusion core (pickled whole), wheel buffer, last fused stamp.
         /ego_motion/path restarts after a restore (its history is not carried)."""
         return {'fusion': self.fusion, 'wheel': self.wheel,
-                'last_released_ns': self.sync.last_released_ns,
+                'last_released_ns': self.sync.last_released_ns, 'sync_window_ns': self.sync.window_ns,
+                'window_learner': self.window_learner,
                 'governor': self.governor.get_state(), 'issued': self.issued.get_state()}
 
     def set_state(self, s):
         self.fusion = s['fusion']
         self.wheel = s['wheel']
         self.sync.last_released_ns = s['last_released_ns']
+        self.sync.window_ns = s.get('sync_window_ns', self.sync.window_ns)
+        self.window_learner = s.get('window_learner', self.window_learner)
         self.governor.set_state(s['governor'])
         self.issued.set_state(s.get('issued'))
 

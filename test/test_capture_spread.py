@@ -1,7 +1,7 @@
 """The capture spread of a rig's cameras and the grouping window found from it (ROS-free)."""
 import pytest
 
-from multicam_ego_motion.bag.capture_spread import capture_spread
+from arbiter_node.capture_spread import WindowLearner, capture_spread
 
 PERIOD = 66_666_667          # 15 Hz
 MS = 1_000_000
@@ -42,3 +42,18 @@ def test_too_little_to_tell():
     assert capture_spread({}).window_s == 0.0
     assert capture_spread({'/a': [0]}).window_s == 0.0
     assert capture_spread(rig([0, 8], frames=1)).window_s == 0.0
+
+
+def test_a_learner_answers_once_when_a_camera_has_enough_frames():
+    learner = WindowLearner(frames=5)
+    stamps = rig([0, 8, 16, 24], frames=10)
+    answers = []
+    for k in range(10):
+        for topic, ts in stamps.items():
+            answers.append(learner.add(topic, ts[k]))
+    got = [a for a in answers if a is not None]
+    assert len(got) == 1 and got[0].spread_ns == 24 * MS and got[0].window_s == pytest.approx(0.031)
+    assert answers.index(got[0]) == 4 * 4          # the first camera's 5th frame
+    synced = WindowLearner(frames=3)
+    out = [synced.add(t, ts[k]) for k in range(3) for t, ts in rig([0, 0]).items()]
+    assert [a.window_s for a in out if a is not None] == [0.0]

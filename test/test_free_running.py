@@ -163,3 +163,19 @@ def test_lockstep_player_groups_a_frames_images_by_the_window(bags):
     assert [sum(m.topic.endswith('/image_raw') for m in f.messages) for f in mixed] == [4, 2] * 150 + [4]
     # rate mode plays by the bag's clock: no window
     assert len(list(BagPlayer(bags['offsets'], PlayOptions(sync_window_s=0.03)).frames())) == 604
+
+
+def test_a_live_graph_learns_the_window_of_free_running_cameras(bags, tmp_path):
+    """sync_window_s 0 on free-running cameras (a rig configured as synchronised): the general
+    arbiter learns the window from its cameras' first estimates and groups them from then on,
+    saying which sync_window_s to set. Without it each camera's estimate is a frame of its own."""
+    out = tmp_path / 'learn'
+    run = replay(bags['offsets'], out, '--rate', '0.25', '--duration', '4', '--sync-window', '0')
+    assert run.returncode == 0, run
+    logs = '\n'.join(p.read_text() for p in (out / 'logs').glob('worker_*.log'))
+    assert 'cameras capture up to 24.0 ms apart (shortest frame period 66.7 ms): free-running, ' \
+        'grouped by a sync window of 0.031 s from now on' in logs, logs[-3000:]
+    # learnt after 20 frames of the first camera (1.3 s of the bag)
+    late = [d for d in run.diagnostics('ego_motion/general_arbiter') if d.t >= 2.0]
+    assert len(late) >= 15
+    assert sum(not d.values['cameras_missing'] for d in late) >= 0.9 * len(late)
