@@ -252,7 +252,7 @@ def test_parse_remaps_rejects_malformed_rules():
         parse_remaps(['/a=/b'])
 
 
-@pytest.mark.parametrize('case', ['missing bag', 'corrupt bag', 'missing topic'])
+@pytest.mark.parametrize('case', ['missing bag', 'corrupt bag', 'missing topic', 'negative stall'])
 def test_bad_input_is_one_line_error(case, bag, tmp_path):
     if case == 'missing bag':
         args, expect = [tmp_path / 'nope'], 'bag not found'
@@ -260,8 +260,10 @@ def test_bad_input_is_one_line_error(case, bag, tmp_path):
         corrupt = tmp_path / 'corrupt.mcap'
         corrupt.write_bytes(b'\x89MCAP0\r\n' + b'garbage' * 100)
         args, expect = [corrupt], 'is corrupt'
-    else:
+    elif case == 'missing topic':
         args, expect = [bag, '--topics', '/nope'], 'has no topic /nope'
+    else:
+        args, expect = [bag, '--lockstep', '--stall-ahead', '-1'], '--stall-ahead must be >= 0 seconds'
     proc = run_cli('play', *args, timeout=60)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
