@@ -4,6 +4,7 @@ from typing import List
 
 from arbiter_node.capture_spread import CaptureSpread, capture_spread
 from multicam_ego_motion.bag.header_stamp import header_stamp_ns
+from multicam_ego_motion.errors import UserError
 
 SAMPLE_S = 3.0          # image stamps read from the start of the bag
 
@@ -15,6 +16,12 @@ def bag_capture_spread(reader, image_topics: List[str], sample_s: float = SAMPLE
     stamps = {t: [] for t in topics}
     if not topics or reader.start_ns is None:
         return capture_spread(stamps)
-    for m in reader.messages(topics, end_ns=reader.start_ns + int(sample_s * 1e9)):
-        stamps[m.topic].append(header_stamp_ns(m.data))
+    try:
+        for m in reader.messages(topics, end_ns=reader.start_ns + int(sample_s * 1e9)):
+            try:
+                stamps[m.topic].append(header_stamp_ns(m.data))
+            except ValueError:
+                continue    # not an image with a header: the replay's type check names it
+    except UserError:
+        pass        # damaged data: the player names it where it plays it, after what comes before
     return capture_spread(stamps)
