@@ -12,7 +12,7 @@ identical-stamp grouping already handles.
 """
 import math
 from dataclasses import dataclass
-from typing import Dict, List, Sequence
+from typing import Dict, List, Optional, Sequence, Tuple
 
 MARGIN = 1.25           # the window is the largest spread seen times this, plus JITTER_NS
 JITTER_NS = 1_000_000
@@ -28,6 +28,17 @@ class CaptureSpread:
     def describe(self) -> str:
         return (f'cameras capture up to {self.spread_ns / 1e6:.1f} ms apart '
                 f'(shortest frame period {self.period_ns / 1e6:.1f} ms)')
+
+    def verdict(self) -> Tuple[Optional[float], Optional[str]]:
+        """(the window to group by, what to tell the user): (None, None) for identical stamps;
+        (None, a warning) when no window under half the period groups them."""
+        if self.window_s == 0:
+            return None, None
+        if not self.groupable:
+            return None, (f'{self.describe()}: no sync window groups them into frames (it would have '
+                          'to stay under half the period); each image is fused on its own')
+        return self.window_s, (f'{self.describe()}: free-running, grouped by a sync window of '
+                               f'{self.window_s:g} s')
 
 
 def capture_spread(stamps: Dict[str, Sequence[int]]) -> CaptureSpread:

@@ -141,15 +141,12 @@ class GeneralArbiterNode(Node):
         if spread is None:
             return
         self.window_learner = None
-        if spread.window_s == 0:
-            return
-        if not spread.groupable:
-            self.get_logger().warn(f'{spread.describe()}: no sync window groups them into frames; '
-                                   'each estimate is fused on its own')
-            return
-        self.sync.window_ns = int(round(spread.window_s * 1e9))
-        self.get_logger().warn(f'{spread.describe()}: free-running, grouped by a sync window of '
-                               f'{spread.window_s:g} s from now on (set sync_window_s to that)')
+        window, said = spread.verdict()
+        if window:
+            self.sync.window_ns = int(round(window * 1e9))
+            said += ' from now on (set sync_window_s to that)'
+        if said:
+            self.get_logger().warn(said)
 
     def on_reset(self, request, response):
         self.fusion.reset()

@@ -177,16 +177,11 @@ def detected_sync_window(reader, rig, params):
     from multicam_ego_motion.params_file import sync_window_from
     if sync_window_from(params) > 0:
         return None
-    spread = bag_capture_spread(reader, [c.image_topic for c in rig.cameras])
-    if spread.window_s == 0:
-        return None
-    if not spread.groupable:
-        print(f'replay: warning: {spread.describe()}: no window groups them into frames (it would '
-              'have to stay under half the period); each image is fused on its own', flush=True)
-        return None
-    print(f'replay: {spread.describe()}: free-running, grouped by a sync window of '
-          f'{spread.window_s:g} s (--sync-window sets another)', flush=True)
-    return spread.window_s
+    window, said = bag_capture_spread(reader, [c.image_topic for c in rig.cameras]).verdict()
+    if said:
+        print(f'replay: {said} (--sync-window sets another)' if window else f'replay: warning: {said}',
+              flush=True)
+    return window
 
 
 def recorded_topics(rig, debug_images: bool = False):

@@ -36,6 +36,14 @@ def test_a_spread_near_half_the_period_cannot_be_grouped():
     s = capture_spread(rig([0, 30]))
     assert s.spread_ns == 30 * MS and not s.groupable
     assert 'up to 30.0 ms apart (shortest frame period 66.7 ms)' in s.describe()
+    window, said = s.verdict()
+    assert window is None and 'no sync window groups them' in said
+
+
+def test_the_verdict_says_what_to_group_by():
+    assert capture_spread(rig([0, 0, 0, 0])).verdict() == (None, None)
+    window, said = capture_spread(rig([0, 8, 16, 24])).verdict()
+    assert window == pytest.approx(0.031) and said.endswith('free-running, grouped by a sync window of 0.031 s')
 
 
 def test_too_little_to_tell():

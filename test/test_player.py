@@ -134,6 +134,12 @@ class LaggingRecipient(Recipient):
         self.ack_pub = self.node.create_publisher(Odometry, '/odom', 10)
         self.complete, self.acked, self.too_many = [], set(), []
 
+    def reset(self):
+        """Forget the frames of a playback (not what was received), for the next one."""
+        with self.lock:
+            self.images_per_stamp.clear()
+            self.complete, self.acked = [], set()
+
     def on_msg(self, topic, msg):
         from nav_msgs.msg import Odometry
         with self.lock:
@@ -160,9 +166,7 @@ class LaggingRecipient(Recipient):
 def _play_lagging(bag, recipient, *args):
     """Play the bag in lockstep into a LaggingRecipient: every message once and in order.
     Returns the player's stderr."""
-    with recipient.lock:
-        recipient.images_per_stamp.clear()
-        recipient.complete, recipient.acked = [], set()
+    recipient.reset()
     proc = run_cli('play', bag, '--lockstep', *args, timeout=120)
     assert proc.returncode == 0, proc.stderr
     time.sleep(0.3)
@@ -173,9 +177,7 @@ def _play_lagging(bag, recipient, *args):
 
 
 def _depth_one_without_stall_ahead_waits_for_ever(bag, recipient):
-    with recipient.lock:
-        recipient.images_per_stamp.clear()
-        recipient.complete, recipient.acked = [], set()
+    recipient.reset()
     proc = run_cli('play', bag, '--lockstep', '--ack-timeout', '2', '--stall-ahead', '0', timeout=60)
     assert proc.returncode != 0 and 'frame 2 ' in proc.stderr \
         and 'was not acknowledged' in proc.stderr, proc.stderr
