@@ -12,6 +12,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path
+from sensor_msgs.msg import PointCloud2
 from rclpy.node import Node
 from std_msgs.msg import Int64MultiArray
 from std_srvs.srv import Trigger
@@ -25,7 +26,10 @@ from arbiter_node.path_history import PathHistory
 from arbiter_node.stamp_sync import StampSynchronizer
 from arbiter_node.wheel_prior import WheelBuffer, twist_from_odometry
 from camera_pose_nodes.pose_estimate import PoseEstimate
+from multicam_ego_motion.coordinator.allocation import QUARTERS
+from multicam_ego_motion.coordinator.graph_spec import bearings_topic
 from multicam_ego_motion.ros_plumbing import diagnostics
+from multicam_ego_motion.ros_plumbing.bearing_messages import msg_to_bearings
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.ros_plumbing.lean_node import subscribe_remote
 from multicam_ego_motion.ros_plumbing.node_main import spin_node
@@ -101,6 +105,11 @@ class GeneralArbiterNode(Node):
         if p['use_wheel_odometry']:
             self.wheel_sub = self.create_subscription(Odometry, p['wheel_odometry_topic'],
                                                       self.on_wheel, RELIABLE)
+        # Without stereo and floor: every quarter's tracks, for the scale (scale_state)
+        self.bearing_subs = [] if not self.fusion.wants_bearings() else [
+            self.create_subscription(PointCloud2, bearings_topic(n, q),
+                                     lambda m, n=n, q=q: self.on_bearings(n, q, m), RELIABLE)
+            for n in self.rig.names for q in range(1, QUARTERS + 1)]
         self.create_service(Trigger, '~/reset', self.on_reset)
         self.poll_timer = self.create_timer(POLL_PERIOD_S, self.poll)
         self.get_logger().info(f'fusing cameras {", ".join(self.rig.names)}')
@@ -114,6 +123,14 @@ class GeneralArbiterNode(Node):
     def on_wheel(self, msg: Odometry):
         self.wheel.add(stamp_to_ns(msg.header.stamp), *twist_from_odometry(msg))
         self.fuse_held()
+
+    def on_bearings(self, camera, quarter, msg):
+        try:
+            stamp_ns, ids, xy, sigma = msg_to_bearings(msg)
+        except ValueError as e:
+            self.get_logger().error(f'{bearings_topic(camera, quarter)}: {e}', throttle_duration_sec=5.0)
+            return
+        self.fusion.add_bearings(camera, quarter, stamp_ns, ids, xy, sigma)
 
     def wheel_settled(self, stamp_ns) -> bool:
         # A frame whose cameras are all in is fused once its wheel reading is in too: fusing

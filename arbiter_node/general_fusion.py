@@ -60,6 +60,10 @@ PARAMETERS = {
     'start_min_cameras': (2, 'without stereo, floor or wheel: the first fix needs this many cameras that agree (two-view initialisation)', 1, 64),
     'rig_rotation_scale': (True, 'without stereo, floor or wheel: measure the map scale from the rig\'s rotation (rig_scale over windows of frames) and rescale the map (scale_state)', None, None),
     'scale_unknown_relative_std': (1.0, 'without stereo, floor or wheel: the map scale\'s relative std before the rig has turned (scale_state; /odom\'s position covariance carries it)', 1e-3, 100.0),
+    'scale_from_tracks': (True, 'without stereo, floor or wheel: measure the map scale from the quarters\' tracks (their bearings) between two frames of a turn, all cameras at once (rig_motion_fit), independent of the map; without tracks, from the cameras\' own motions over windows of frames', None, None),
+    'scale_pair_rotation_rad': (0.05, 'scale_state: a scale observation from the tracks spans at least this much body rotation (the lever arms\' signal)', 0.005, 1.0),
+    'scale_pair_max_frames': (4, 'scale_state: ... over at most this many frames (tracks must last)', 1, 10),
+    'scale_pair_std': (0.1, 'scale_state: relative std of one scale observation from the tracks, the same for all (what per-pair observations scatter by; the fit\'s predicted std only rejects weak pairs, above scale_max_relative_std)', 1e-3, 10.0),
     'scale_window_rotation_rad': (1.0, 'scale_state: a rig-rotation scale observation spans this much body rotation (windows do not overlap)', 0.02, 3.0),
     'scale_window_max_s': (4.0, 'scale_state: ... within at most this long', 0.1, 60.0),
     'scale_snap_relative_std': (0.1, 'scale_state: the map is rescaled once the scale\'s relative std is below this', 1e-4, 1.0),
@@ -193,6 +197,7 @@ class GeneralFusion:
         at its own time, before the cameras."""
         p = self.params
         wheel_used = False
+        camera_stamps = {n: e.stamp_ns for n, e in camera_estimates.items()}
         free_running = any(e.stamp_ns != stamp_ns for e in camera_estimates.values())
         wheel_first = (free_running and wheel_twist is not None and wheel_stamp_ns is not None
                        and self.last_stamp_ns is not None
@@ -277,7 +282,8 @@ class GeneralFusion:
             state = 'lost'
 
         fixed_by, scale_std, odom_cov = self._scale_step(stamp_ns, wheel_used, camera_update,
-                                                         {n: med.inliers[n].T_odom_base for n in used})
+                                                         {n: med.inliers[n].T_odom_base for n in used},
+                                                         camera_stamps)
         T_now = self.ekf.T
         scale_ratio = None
         scale_source = 'wheel' if wheel_used else ('landmarks' if self.has_tracked else 'none')
@@ -299,7 +305,7 @@ class GeneralFusion:
             scale_relative_std=scale_std,
             odom_covariance=self.ekf.pose_covariance if odom_cov is None else odom_cov)
 
-    def _scale_step(self, stamp_ns, wheel_used, camera_update, camera_poses):
+    def _scale_step(self, stamp_ns, wheel_used, camera_update, camera_poses, camera_stamps):
         """scale_state's part of a frame: (source, relative std, /odom covariance or None).
         Nothing here touches the estimate while stereo, floor or wheel fix the scale."""
         self.wheel_seen = self.wheel_seen or wheel_used
@@ -315,10 +321,22 @@ class GeneralFusion:
                 T[:3, 3] = scale_positions(T[:3, 3], c.factor, c.centre)
                 camera_poses[n] = T
         if camera_update and self.params['rig_rotation_scale']:
-            sc.observe(stamp_ns, self.ekf.T, camera_poses)
+            sc.observe(stamp_ns, self.ekf.T, camera_poses, camera_stamps)
             sc.decide(stamp_ns, self.ekf.T)
         fixed_by = 'rig rotation' if sc.observed else 'none'
         return fixed_by, sc.relative_std, sc.odom_covariance(self.ekf.T, self.ekf.pose_covariance)
+
+    def wants_bearings(self) -> bool:
+        """Whether the quarters' tracks can tell this fusion anything: the scale is measured
+        from them only without stereo and floor (and wheel, once one is seen)."""
+        return bool(self.params['rig_rotation_scale'] and self.params['scale_from_tracks']
+                    and metric_source(self.rig, False) is None)
+
+    def add_bearings(self, camera: str, quarter: int, stamp_ns: int, ids, xy, sigma):
+        """A quarter's tracks at one of its frames (normalised points and their std), for the
+        scale from the rig's motion; taken from the frame after it on."""
+        if self.wants_bearings() and not self.wheel_seen:
+            self.scale.add_bearings(camera, quarter, stamp_ns, ids, xy, sigma)
 
     @property
     def map_scale_command(self):

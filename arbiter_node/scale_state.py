@@ -7,10 +7,16 @@ lever arms give the body's metric translation) and, before the first turn, none:
 then in the quarters' two-view gauge (camera_pose_nodes/two_view) and its scale unknown.
 
 Only without stereo, floor and wheel does this state act: it keeps the log of the factor that
-takes the map to metres, x = log k, with its variance P (P = 1: unknown). Every window of
-frames over which the body turned `scale_window_rotation_rad` gives an observation of k
-(rig_scale.solve_rig_translation against the fused translation over the window, its relative
-std as the observation's std). Once P is small enough the map is rescaled (the "snap"): a
+takes the map to metres, x = log k, with its variance P (P = 1: unknown). Observations of k,
+in turns only (the lever arms carry the scale):
+- from the quarters' tracks (`scale_from_tracks`, once bearings come in): every pair of fused
+  frames over which the body turned `scale_pair_rotation_rad`, the rig's motion fitted to all
+  cameras' tracks between them (rig_motion_fit) against the fused translation; independent
+  of the map;
+- without tracks, every window of frames over which the body turned
+  `scale_window_rotation_rad` (rig_scale.solve_rig_translation on the cameras' own motions
+  against the fused translation over the window; those motions follow the map, so it sees
+  only part of the map's scale error). Once P is small enough the map is rescaled (the "snap"): a
 MapScaleCommand multiplies every position by k, from the next frame, in the general arbiter
 and in every quarter (camera_pose_nodes/map_scale), and x returns to 0 with P kept. Later
 turns keep tightening P and snap again when the factor has moved `scale_snap_min_change` (and one std); the map's own
@@ -27,11 +33,13 @@ from typing import Dict, Optional
 
 import numpy as np
 
+from arbiter_node.rig_motion_fit import CameraTracks, fit_rig_motion
 from arbiter_node.rig_scale import relative_motion, scale_correction, solve_rig_translation
 from camera_pose_nodes.map_scale import MapScaleCommand, rescale_filter, scale_positions
 from multicam_ego_motion.geometry import se3
 
 SOURCES = ('none', 'rig rotation', 'floor', 'wheel', 'stereo')
+BEARING_STAMPS_KEPT = 12      # per camera: a pair spans at most scale_pair_max_frames + 1
 
 
 def metric_source(rig, wheel_seen: bool) -> Optional[str]:
@@ -60,10 +68,24 @@ class ScaleState:
         self.epoch = 0
         self.command: Optional[MapScaleCommand] = None  # the latest, for the quarters
         self.pending: Optional[MapScaleCommand] = None  # not yet applied here
-        self.history = deque()                         # (stamp, T fused, {camera: centre in odom})
+        self.history = deque()                         # (stamp, T fused, {camera: centre in odom}, {camera: its stamp})
         self.window_start = None                       # stamp: windows do not overlap
         self.last_ratio: Optional[float] = None
         self.snapped_about = np.zeros(3)               # centre of the position covariance term
+        # camera -> {stamp: {quarter: (ids, xy, sigma)}}: the quarters' tracks (add_bearings)
+        self.bearings: Dict[str, Dict[int, dict]] = {}
+        self.pair_end = None                           # stamp: track pairs do not overlap
+        self.last_fit = None                           # rig_motion_fit.RigMotionFit, diagnostics
+
+    def add_bearings(self, camera: str, quarter: int, stamp_ns: int, ids, xy, sigma):
+        """One quarter's tracks at one of its frames (normalised points, their std)."""
+        if camera not in self.rig.names:
+            return
+        per = self.bearings.setdefault(camera, {})
+        per.setdefault(int(stamp_ns), {})[int(quarter)] = (np.asarray(ids), np.asarray(xy, float),
+                                                           np.asarray(sigma, float))
+        while len(per) > BEARING_STAMPS_KEPT:
+            del per[min(per)]
 
     @property
     def relative_std(self) -> float:
@@ -79,15 +101,17 @@ class ScaleState:
         rescale_body_ekf(ekf, c.factor, c.centre)
         fusion.last_T = fusion.last_T.copy()
         fusion.last_T[:3, 3] = scale_positions(fusion.last_T[:3, 3], c.factor, c.centre)
-        for _, T, centres in self.history:
+        for _, T, centres, _ in self.history:
             T[:3, 3] = scale_positions(T[:3, 3], c.factor, c.centre)
             for n in centres:
                 centres[n] = scale_positions(centres[n], c.factor, c.centre)
         return True
 
-    def observe(self, stamp_ns: int, T_now: np.ndarray, cameras: Dict[str, np.ndarray]):
-        """Record this frame (fused pose; informative cameras' body poses) and, when the body
-        turned enough since the window's start, observe the scale over that window."""
+    def observe(self, stamp_ns: int, T_now: np.ndarray, cameras: Dict[str, np.ndarray],
+                camera_stamps: Optional[Dict[str, int]] = None):
+        """Record this frame (fused pose; informative cameras' body poses; each camera's own
+        stamp) and observe the scale: from the tracks when the quarters send them, else over a
+        window of frames once the body turned enough since its start."""
         p = self.p
         if self.observed and self.history:
             # the map's own scale drifts (monocular): the estimate must follow it
@@ -97,12 +121,16 @@ class ScaleState:
             T = cameras.get(cam.name)
             if T is not None:
                 centres[cam.name] = (T @ cam.T_base_cam)[:3, 3].copy()
-        self.history.append((int(stamp_ns), T_now.copy(), centres))
+        stamps = {n: int(s) for n, s in (camera_stamps or {}).items()}
+        self.history.append((int(stamp_ns), T_now.copy(), centres, stamps))
         max_ns = p['scale_window_max_s'] * 1e9
-        while self.history and stamp_ns - self.history[0][0] > max_ns:
+        while len(self.history) > p['scale_pair_max_frames'] + 2 and stamp_ns - self.history[0][0] > max_ns:
             self.history.popleft()
+        if p['scale_from_tracks'] and self.bearings:
+            self._observe_tracks()
+            return
         R_now = T_now[:3, :3]
-        for s, T, c0 in reversed(list(self.history)[:-1]):
+        for s, T, c0, _ in reversed(list(self.history)[:-1]):
             if self.window_start is not None and s < self.window_start:
                 break
             angle = float(np.linalg.norm(se3.R_to_rotvec(T[:3, :3].T @ R_now)))
@@ -122,17 +150,75 @@ class ScaleState:
                                       max_relative_std=p['scale_max_relative_std'],
                                       names=self.rig.names)
             k = scale_correction(t_map, r)
-            if k is None:
-                return
-            z, Rz = math.log(k), max(r.relative_std, 1e-3) ** 2
-            if self.observed and (z - self.x) ** 2 > 9.0 * (self.P + Rz):
-                return         # one window against all before: a bad one (gated)
-            g = self.P / (self.P + Rz)
-            self.x += g * (z - self.x)
-            self.P *= (1.0 - g)
-            self.observed = True
-            self.last_ratio = k
+            if k is not None:
+                self._update(k, r.relative_std)
             return
+
+    def _update(self, k: float, relative_std: float):
+        """Kalman update of log k by one observation of the factor k."""
+        z, Rz = math.log(k), max(relative_std, 1e-3) ** 2
+        if self.observed and (z - self.x) ** 2 > 9.0 * (self.P + Rz):
+            return         # one observation against all before: a bad one (gated)
+        g = self.P / (self.P + Rz)
+        self.x += g * (z - self.x)
+        self.P *= (1.0 - g)
+        self.observed = True
+        self.last_ratio = k
+
+    def _observe_tracks(self):
+        """The rig's metric motion from the tracks between two earlier fused frames a and b
+        (b the previous frame: this one's tracks may still be on their way to a general
+        arbiter node), a the latest before b that the body turned scale_pair_rotation_rad
+        from, at most scale_pair_max_frames before it; pairs do not overlap."""
+        p = self.p
+        hist = list(self.history)
+        if len(hist) < 3:
+            return
+        b = hist[-2]
+        if self.pair_end is not None and b[0] <= self.pair_end:
+            return
+        a = None
+        for h in reversed(hist[max(0, len(hist) - 2 - p['scale_pair_max_frames']):-2]):
+            if self.pair_end is not None and h[0] < self.pair_end:
+                break
+            angle = float(np.linalg.norm(se3.R_to_rotvec(h[1][:3, :3].T @ b[1][:3, :3])))
+            if angle >= p['scale_pair_rotation_rad']:
+                a = h
+                break
+        if a is None:
+            return
+        self.pair_end = b[0]
+        cams = []
+        for cam in self.rig.cameras:
+            per = self.bearings.get(cam.name, {})
+            qa = per.get(a[3].get(cam.name, a[0]))
+            qb = per.get(b[3].get(cam.name, b[0]))
+            if not qa or not qb:
+                continue
+            xa, xb, sg = [], [], []
+            for q in sorted(set(qa) & set(qb)):
+                ia, pa, sa = qa[q]
+                ib, pb, sb = qb[q]
+                _, ja, jb = np.intersect1d(ia, ib, assume_unique=True, return_indices=True)
+                xa.append(pa[ja])
+                xb.append(pb[jb])
+                sg.append(np.maximum(sa[ja], sb[jb]))
+            if xa:
+                cams.append(CameraTracks(cam.rotation, cam.translation, np.concatenate(xa),
+                                         np.concatenate(xb), np.concatenate(sg)))
+        R, t_map = relative_motion(a[1], b[1])
+        fit = fit_rig_motion(R, t_map, cams)
+        self.last_fit = fit
+        if not fit.ok:
+            return
+        if fit.relative_std > p['scale_max_relative_std']:
+            return
+        nn = float(t_map @ t_map)
+        k = float(t_map @ fit.t) / nn if nn > 1e-12 else 0.0
+        if k > 0 and np.isfinite(k):
+            # One std for every pair, not the fit's prediction: weighted by that, the scale
+            # read 2-3 % low (the prediction is smaller where |t| came out short).
+            self._update(k, p['scale_pair_std'])
 
     def decide(self, stamp_ns: int, T_now: np.ndarray) -> Optional[MapScaleCommand]:
         """A rescale command, from the next frame on, when the scale is known well enough

@@ -358,6 +358,15 @@ class QuarterEstimator:
         return PoseEstimate(stamp_ns, self.ekf.T_odom_base, cov,
                             source=self.source, state=state, **kw)
 
+    def bearings(self):
+        """The tracks of the frame just processed (call right after process_image, before
+        new features are extracted): ids, normalised undistorted points and their std in
+        those units. The general arbiter fits the rig's metric motion to them in turns
+        (arbiter_node/rig_motion_fit) when nothing else gives the scale."""
+        xy = self.intrinsics.undistort_points(self.tracker.pts)
+        sigma = self.params.pixel_sigma / (0.5 * (self.intrinsics.fx + self.intrinsics.fy))
+        return self.tracker.ids.copy(), xy, np.full(len(xy), sigma)
+
     def _relinearize(self, X, xy, dt):
         """Stereo rigs (metric landmarks from the first frame, often a car at speed): a
         robust pose from this frame's landmarks (OpenCV PnP, RANSAC, from the prediction)

@@ -25,7 +25,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Int64MultiArray
 
 from camera_pose_nodes import kernel
@@ -35,6 +35,7 @@ from camera_pose_nodes.map_scale import MapScaleCommand
 from camera_pose_nodes.image_conversion import bgr8_message, image_msg_to_gray
 from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, QuarterParams
 from multicam_ego_motion.ros_plumbing import diagnostics
+from multicam_ego_motion.ros_plumbing.bearing_messages import bearings_to_msg
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.ros_plumbing.node_main import spin_node
 from multicam_ego_motion.ros_plumbing.node_parameters import declare_from_table
@@ -128,6 +129,10 @@ class QuarterNode(Node):
         self.pub_tracks = (self.create_publisher(Image, 'tracks', RELIABLE_IMAGES)
                            if p['debug_images'] else None)
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'pose', RELIABLE)
+        # Without floor and stereo the general arbiter measures the scale from every quarter's
+        # tracks (scale_state.metric_source; a wheel, when one comes, makes them unused)
+        self.pub_bearings = (self.create_publisher(PointCloud2, 'bearings', RELIABLE)
+                             if rig.floor_z is None and not rig.stereo_pairs else None)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         # topic -> (type, QoS, callback) of the per-frame inputs
         # (the schedule first: an executor takes ready subscriptions in creation order)
@@ -416,6 +421,9 @@ class QuarterNode(Node):
                 return
         est = self.estimator.process_image(stamp_ns, gray)
         self.last_processed_ns = stamp_ns
+        if self.pub_bearings is not None:
+            self.pub_bearings.publish(bearings_to_msg(stamp_ns, self.camera.frame_id,
+                                                      *self.estimator.bearings()))
         self.sent.add(stamp_ns, est)
         msg = estimate_to_msg(est)
         self.send_estimate(msg)

@@ -53,6 +53,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
                         f'({", ".join(c.image_topic for c in rig.cameras)})')
     qp = QuarterParams(**(quarter_params or {}))
     fusion = GeneralFusion(rig, fusion_params or {})
+    sends_bearings = rig.floor_z is None and not rig.stereo_pairs     # as quarter_node
     topics = [c.image_topic for c in present] + [c.camera_info_topic for c in present
                                                   if c.camera_info_topic in reader.topics]
     wheel_topic = '/wheel/odom' if use_wheel and '/wheel/odom' in reader.topics else None
@@ -84,6 +85,10 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
                 continue
             gray = image_msg_to_gray(msg, expected_size=estimators[name][0].image_size)
             ests = [q.process_image(frame_stamps[name], gray) for q in estimators[name]]
+            if sends_bearings:
+                # as the quarter nodes publish them; fused from the next frame on
+                for q in estimators[name]:
+                    fusion.add_bearings(name, q.quarter, frame_stamps[name], *q.bearings())
             for e in ests:
                 result.quarters[e.source].append(e)
                 for k, v in e.stage_ms.items():

@@ -12,6 +12,7 @@ absolutely, which a node namespace leaves alone: `remappings()` gives the rules 
 from dataclasses import asdict, dataclass, field
 from typing import Dict, Iterable, List, Tuple
 
+from multicam_ego_motion.coordinator.allocation import QUARTERS
 from multicam_ego_motion.geometry.rig import Rig
 
 
@@ -82,11 +83,18 @@ def topic_parameter_values(params_file: str = None, overrides: Dict[str, Dict] =
     return values
 
 
+def bearings_topic(camera: str, quarter: int) -> str:
+    """A quarter's tracks for the general arbiter (its node publishes `bearings` in its
+    namespace /<camera>/q<quarter>)."""
+    return f'/{camera}/q{quarter}/bearings'
+
+
 def graph_topics(rig: Rig, topic_parameters: Iterable[str] = ()) -> List[str]:
     """Every absolute topic name the graph's nodes use (what a namespace must move)."""
     names = list(FIXED_TOPICS)
     for cam in rig.cameras:
         names += [cam.image_topic, cam.camera_info_topic, f'/{cam.name}/pose']
+        names += [bearings_topic(cam.name, q) for q in range(1, QUARTERS + 1)]
     names += list(topic_parameters)
     return sorted({n for n in names if n.startswith('/')})
 
