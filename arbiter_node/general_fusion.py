@@ -11,6 +11,7 @@ Scale: the rig-scale observer (rig_scale) is fed when per-camera translation dir
 available and `scale_observed` reports it; until it is wired to correct anything, metric
 scale comes from the wheel prior (when configured) and from the landmarks.
 """
+from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Dict, List, Mapping, Optional, Tuple
 
@@ -21,10 +22,12 @@ from arbiter_node.camera_median import median_filter
 from arbiter_node.covariance import condition_covariance
 from arbiter_node.quarter_fusion import CHI2_6DOF_999, information_fusion
 from arbiter_node.time_shift import shift_pose
+from arbiter_node.rig_motion_fit import fit_rig_motion
 from arbiter_node.rig_scale import RigScaleResult, relative_motion, scale_correction, solve_rig_translation
 from arbiter_node.scale_state import ScaleState, metric_source
 from camera_pose_nodes.map_scale import scale_positions
 from camera_pose_nodes.pose_estimate import PoseEstimate
+from multicam_ego_motion.geometry import se3
 from multicam_ego_motion.geometry.rig import Rig
 
 FUSED_STATES = ('initializing', 'tracking', 'lost', 'dead_reckoning')
@@ -58,6 +61,8 @@ PARAMETERS = {
     'scale_max_relative_std': (0.1, 'rig-scale observer: trust t only when its predicted relative error is below this', 1e-3, 1.0),
     'stereo_start_speed_std': (20.0, 'rig with a stereo pair (stereo_pairs) and no wheel yet: linear velocity std at the first camera fix (m/s); such a rig measures metric motion from the first frame and may start at speed (a car), where the at-rest start gated out every later frame', 1e-3, 1000.0),
     'start_min_cameras': (2, 'without stereo, floor or wheel: the first fix needs this many cameras that agree (two-view initialisation)', 1, 64),
+    'start_from_tracks': (True, 'without stereo, floor or wheel: on frames without a camera fix, the rig\'s motion between the two previous frames fitted to the quarters\' tracks (rig_motion_fit) is a twist measurement whenever it is metric (a turn or a spin in place: the lever arms), so /odom turns with a rig that spins before it drives', None, None),
+    'start_max_translation_std_m': (0.02, '... when the fitted translation\'s std is below this (m)', 1e-4, 1.0),
     'rig_rotation_scale': (True, 'without stereo, floor or wheel: measure the map scale from the rig\'s rotation (rig_scale over windows of frames) and rescale the map (scale_state)', None, None),
     'scale_unknown_relative_std': (1.0, 'without stereo, floor or wheel: the map scale\'s relative std before the rig has turned (scale_state; /odom\'s position covariance carries it)', 1e-3, 100.0),
     'scale_from_tracks': (True, 'without stereo, floor or wheel: measure the map scale from the quarters\' tracks (their bearings) between two frames of a turn, all cameras at once (rig_motion_fit), independent of the map; without tracks, from the cameras\' own motions over windows of frames', None, None),
@@ -118,7 +123,9 @@ class GeneralFusion:
         self.ekf.reinitialize(np.eye(4), np.eye(6) * p['initial_pose_std'] ** 2)
         self.last_stamp_ns: Optional[int] = None
         self.last_support_ns: Optional[int] = None     # last camera update or wheel prior
-        self.has_tracked = False
+        self.has_tracked = False       # a camera fix, or (start_from_tracks) a twist from the tracks
+        self.camera_fixed = False      # a camera fix
+        self.frames = deque(maxlen=2)  # (stamp, {camera: its stamp}) of the last frames
         self.rejections = 0
         self.wheel_seen = False
         self.last_T: np.ndarray = np.eye(4)
@@ -226,7 +233,7 @@ class GeneralFusion:
         # Without a scale source the first fix comes from the quarters' two-view geometry,
         # whose direction of travel one quarter alone can get wrong (a narrow view confuses
         # sideways travel with a turn): the rig starts once enough cameras agree.
-        start_ok = (self.has_tracked or len(med.inliers) >= p['start_min_cameras']
+        start_ok = (self.camera_fixed or len(med.inliers) >= p['start_min_cameras']
                     or metric_source(self.rig, self.wheel_seen or wheel_twist is not None) is not None)
         if med.inliers and start_ok:
             names = sorted(med.inliers)
@@ -234,7 +241,7 @@ class GeneralFusion:
             T_f, cov_f = information_fusion([e.T_odom_base for e in ests], [e.covariance for e in ests], med.T_median)
             cov_f = condition_covariance(cov_f * (1.0 + (len(ests) - 1) * p['camera_correlation']))
             if not self.has_tracked:
-                # first camera fix: the cameras define the pose (odom origin was the start)
+                # first fix: the cameras define the pose (odom origin was the start)
                 twist_cov = None
                 if getattr(self.rig, 'stereo_pairs', ()) and not self.wheel_seen and wheel_twist is None:
                     twist_cov = np.diag([p['stereo_start_speed_std'] ** 2] * 3
@@ -252,11 +259,18 @@ class GeneralFusion:
             if camera_update:
                 used = names
                 self.rejections = 0
-                self.has_tracked = True
+                self.has_tracked = self.camera_fixed = True
             else:
                 for n in names:
                     out_rejected[n] = f'fused pose gated out by the EKF (mahalanobis {d2:.1f})'
 
+        # (only where the cameras gave nothing: with their fix as well, the loop's scale read
+        # 6 % short; the tracks' twist and the cameras' poses come from the same images)
+        tracks_update = (not camera_update and wheel_twist is None
+                         and p['start_from_tracks'] and self.wants_bearings() and not self.wheel_seen
+                         and self._twist_from_tracks())
+        if tracks_update:
+            self.has_tracked = True
         # The wheel twist after the camera update (applying it at mid-step, trapezoidally,
         # was tried: it lags less in turns but spin_then_drive's scale went to -12 %).
         if wheel_twist is not None and not wheel_first:
@@ -269,9 +283,9 @@ class GeneralFusion:
             sd = p['planar_twist_std']
             self.ekf.update_twist(np.zeros(6), np.eye(6) * sd * sd, axes=(2, 3, 4))
 
-        if camera_update or wheel_used:
+        if camera_update or wheel_used or tracks_update:
             self.last_support_ns = stamp_ns
-        if camera_update:
+        if camera_update or tracks_update:
             state = 'tracking'
         elif not self.has_tracked:
             state = 'initializing'
@@ -295,6 +309,7 @@ class GeneralFusion:
                 scale_source = 'rig'
                 scale_ratio = scale_correction(relative_motion(T_prev, T_now)[1], r)
         self.last_T = T_now
+        self.frames.append((int(stamp_ns), camera_stamps))
         return FusedEstimate(
             stamp_ns=stamp_ns, T_odom_base=T_now, pose_covariance=self.ekf.pose_covariance,
             twist=self.ekf.twist, twist_covariance=self.ekf.twist_covariance, state=state,
@@ -325,6 +340,40 @@ class GeneralFusion:
             sc.decide(stamp_ns, self.ekf.T)
         fixed_by = 'rig rotation' if sc.observed else 'none'
         return fixed_by, sc.relative_std, sc.odom_covariance(self.ekf.T, self.ekf.pose_covariance)
+
+    def _twist_from_tracks(self) -> bool:
+        """On a frame without a camera fix: the rig's motion between the two previous frames
+        from the quarters' tracks (this frame's may still be on their way), as a twist
+        measurement when it is metric: rotated scale_pair_rotation_rad, its translation known
+        to start_max_translation_std_m. A rig spinning in place has no two-view start (no
+        parallax), but its cameras' centres move on the lever arms, and that is metric."""
+        if len(self.frames) < 2:
+            return False
+        p = self.params
+        (s0, c0), (s1, c1) = self.frames
+        dt = (s1 - s0) * 1e-9
+        if dt <= 0.0:
+            return False
+        cams = self.scale.tracks_between(c0, c1, s0, s1)
+        twist = self.ekf.twist
+        t0 = twist[:3] * dt
+        if np.linalg.norm(t0) < 1e-3:
+            t0 = np.array([1e-2, 0.0, 0.0])      # a start the fit can move from (not zero)
+        fit = fit_rig_motion(se3.rotvec_to_R(twist[3:] * dt), t0, cams)
+        self.scale.last_fit = fit
+        if not fit.ok:
+            return False
+        rotvec = se3.R_to_rotvec(fit.R)
+        C = fit.covariance
+        if (np.linalg.norm(rotvec) < p['scale_pair_rotation_rad']
+                or np.sqrt(np.trace(C[3:, 3:])) > p['start_max_translation_std_m']):
+            return False
+        cov = np.zeros((6, 6))
+        cov[:3, :3], cov[3:, 3:] = C[3:, 3:], C[:3, :3]
+        cov[:3, 3:], cov[3:, :3] = C[3:, :3], C[:3, 3:]
+        # x4: single fits scatter about twice their predicted std (docs/fusion.md, scale)
+        used, _ = self.ekf.update_twist(np.r_[fit.t, rotvec] / dt, 4.0 * cov / dt ** 2)
+        return used
 
     def wants_bearings(self) -> bool:
         """Whether the quarters' tracks can tell this fusion anything: the scale is measured

@@ -40,6 +40,7 @@ class RigMotionFit:
     R: np.ndarray
     t: np.ndarray               # metric translation, base_link at frame a (m)
     relative_std: float         # predicted std of |t| along t, relative
+    covariance: np.ndarray      # 6x6 of (rotation correction, rotation vector; t)
     n_points: int
     n_inliers: int
     rms: float                  # inliers' residual RMS, in point stds
@@ -76,7 +77,8 @@ def fit_rig_motion(R0: np.ndarray, t0: np.ndarray, cameras: List[CameraTracks],
     residual RMS (in point stds)."""
     cameras = [c for c in cameras if len(c.xa)]
     n = sum(len(c.xa) for c in cameras)
-    fail = RigMotionFit(np.asarray(R0, float), np.zeros(3), float('inf'), n, 0, float('nan'), False)
+    fail = RigMotionFit(np.asarray(R0, float), np.zeros(3), float('inf'), np.eye(6) * 1e6, n, 0,
+                        float('nan'), False)
     if len(cameras) < 2:
         fail.reason = f'{len(cameras)} camera(s) with tracks in both frames; need 2'
         return fail
@@ -106,5 +108,5 @@ def fit_rig_motion(R0: np.ndarray, t0: np.ndarray, cameras: List[CameraTracks],
         fail.reason = 'singular fit'
         return fail
     rel = float(np.sqrt(max(t @ cov[3:, 3:] @ t, 0.0)) / tn ** 2) if tn > 1e-9 else float('inf')
-    return RigMotionFit(R, t, rel, n, int(inl.sum()), rms, bool(sol.success and np.isfinite(rel)),
+    return RigMotionFit(R, t, rel, cov, n, int(inl.sum()), rms, bool(sol.success and np.isfinite(rel)),
                         '' if sol.success else f'not converged: {sol.message}')

@@ -29,7 +29,7 @@ while the scale is unknown.
 """
 import math
 from collections import deque
-from typing import Dict, Optional
+from typing import Dict, List, Optional
 
 import numpy as np
 
@@ -165,6 +165,30 @@ class ScaleState:
         self.observed = True
         self.last_ratio = k
 
+    def tracks_between(self, stamps_a: Dict[str, int], stamps_b: Dict[str, int], frame_a: int,
+                       frame_b: int) -> List[CameraTracks]:
+        """Every camera's tracks seen at both frames (each camera at its own stamp in the
+        frame, else the frame's), quarter by quarter matched by track id."""
+        cams = []
+        for cam in self.rig.cameras:
+            per = self.bearings.get(cam.name, {})
+            qa = per.get(stamps_a.get(cam.name, frame_a))
+            qb = per.get(stamps_b.get(cam.name, frame_b))
+            if not qa or not qb:
+                continue
+            xa, xb, sg = [], [], []
+            for q in sorted(set(qa) & set(qb)):
+                ia, pa, sa = qa[q]
+                ib, pb, sb = qb[q]
+                _, ja, jb = np.intersect1d(ia, ib, assume_unique=True, return_indices=True)
+                xa.append(pa[ja])
+                xb.append(pb[jb])
+                sg.append(np.maximum(sa[ja], sb[jb]))
+            if xa:
+                cams.append(CameraTracks(cam.rotation, cam.translation, np.concatenate(xa),
+                                         np.concatenate(xb), np.concatenate(sg)))
+        return cams
+
     def _observe_tracks(self):
         """The rig's metric motion from the tracks between two earlier fused frames a and b
         (b the previous frame: this one's tracks may still be on their way to a general
@@ -188,24 +212,7 @@ class ScaleState:
         if a is None:
             return
         self.pair_end = b[0]
-        cams = []
-        for cam in self.rig.cameras:
-            per = self.bearings.get(cam.name, {})
-            qa = per.get(a[3].get(cam.name, a[0]))
-            qb = per.get(b[3].get(cam.name, b[0]))
-            if not qa or not qb:
-                continue
-            xa, xb, sg = [], [], []
-            for q in sorted(set(qa) & set(qb)):
-                ia, pa, sa = qa[q]
-                ib, pb, sb = qb[q]
-                _, ja, jb = np.intersect1d(ia, ib, assume_unique=True, return_indices=True)
-                xa.append(pa[ja])
-                xb.append(pb[jb])
-                sg.append(np.maximum(sa[ja], sb[jb]))
-            if xa:
-                cams.append(CameraTracks(cam.rotation, cam.translation, np.concatenate(xa),
-                                         np.concatenate(xb), np.concatenate(sg)))
+        cams = self.tracks_between(a[3], b[3], a[0], b[0])
         R, t_map = relative_motion(a[1], b[1])
         fit = fit_rig_motion(R, t_map, cams)
         self.last_fit = fit

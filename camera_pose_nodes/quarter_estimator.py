@@ -395,8 +395,8 @@ class QuarterEstimator:
 
     def _two_view_due(self) -> bool:
         """No scale source has moved this quarter's map yet: no landmarks, no floor, no stereo
-        partner, fused
-        poses that all sit where the first one did (no wheel moved them); or this quarter
+        partner, fused poses that put this camera where the first one did (no wheel moved
+        them, no spin measured from the tracks); or this quarter
         started from two views and has no landmarks yet: it goes on measuring against the
         same view, so the map keeps one gauge (nominal speed) until landmarks hold it."""
         if not (self.params.two_view_init and not self.uses_floor and self.partner is None
@@ -405,8 +405,16 @@ class QuarterEstimator:
         if self._two_view_ref in self.fused_poses:
             return True        # keeps the gauge until this quarter has landmarks
         _, fT, _, _ = self._fused_arrays()
-        p = fT[:, :3, 3]
-        return float(np.max(np.linalg.norm(p - p[0], axis=1))) < self.params.epipolar_min_baseline
+        # this camera's centre, not the body's: a rig spinning in place (its motion measured
+        # from the tracks, general_fusion) moves its cameras on their lever arms, a baseline
+        # to triangulate from, where a two-view start would invent a nominal-speed translation
+        p = fT[:, :3, :3] @ self.T_base_cam[:3, 3] + fT[:, :3, 3]
+        if float(np.max(np.linalg.norm(p - p[0], axis=1))) >= self.params.epipolar_min_baseline:
+            return False
+        # nor when they turn: the fusion measures the motion already (a spin, from the tracks),
+        # and two views of a turn that have parallax only from the lever arm are no start
+        turn = np.einsum('ij,nij->n', fT[0, :3, :3], fT[:, :3, :3])      # trace(R0^T R)
+        return float(np.min(turn)) > 1.0 + 2.0 * np.cos(np.radians(self.params.two_view_parallax_deg))
 
     def rescale_command(self, command):
         """The general arbiter's map-scale command (map_scale.MapScaleCommand): applied with
