@@ -17,16 +17,23 @@ from multicam_ego_motion.evaluation.trajectory_io import Trajectory
 FRAMES = 20 * 8 + 1
 
 
-@pytest.fixture(scope='module')
-def run(tmp_path_factory):
-    root = tmp_path_factory.mktemp('no_scale')
-    bag = root / 'loop'
-    r = run_cli('generate', '--scenario', 'loop', '--seed', 7, '--duration', 20, '--rate', 8,
+def scenario_without_floor(root, scenario):
+    """The accuracy suite's settings (seed 7, 20 s at 8 Hz, 320x240) and a rig file without
+    floor_z beside the bag: (bag, rig file)."""
+    bag = root / scenario
+    r = run_cli('generate', '--scenario', scenario, '--seed', 7, '--duration', 20, '--rate', 8,
                 '--width', 320, '--height', 240, '--fx', 200, '--out', bag, timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
     rig = yaml.safe_load((bag / 'rig.yaml').read_text())
     rig.pop('floor_z')
     (root / 'rig_no_floor.yaml').write_text(yaml.safe_dump(rig))
+    return bag, root / 'rig_no_floor.yaml'
+
+
+@pytest.fixture(scope='module')
+def run(tmp_path_factory):
+    root = tmp_path_factory.mktemp('no_scale')
+    bag, _ = scenario_without_floor(root, 'loop')
     run = replay(bag, root / 'out', '--no-wheel', '--rig', root / 'rig_no_floor.yaml', timeout=900)
     assert run.returncode == 0, run
     return run
@@ -134,16 +141,9 @@ def spin(tmp_path_factory):
     from multicam_ego_motion.sequential_pipeline import run_sequential
     from replay_run import NS
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
-    root = tmp_path_factory.mktemp('spin')
-    bag = root / 'spin'
-    r = run_cli('generate', '--scenario', 'spin_then_drive', '--seed', 7, '--duration', 20, '--rate', 8,
-                '--width', 320, '--height', 240, '--fx', 200, '--out', bag, timeout=300)
-    assert r.returncode == 0, r.stdout + r.stderr
-    rig = yaml.safe_load((bag / 'rig.yaml').read_text())
-    rig.pop('floor_z')
-    (root / 'rig_no_floor.yaml').write_text(yaml.safe_dump(rig))
+    bag, rig_file = scenario_without_floor(tmp_path_factory.mktemp('spin'), 'spin_then_drive')
     pf = default_params()
-    res = run_sequential(bag, load_rig(root / 'rig_no_floor.yaml'), quarter_params_from(pf),
+    res = run_sequential(bag, load_rig(rig_file), quarter_params_from(pf),
                          fusion_params_from(pf), use_wheel=False)
     start = Rosbag2Reader(bag).start_ns
     gt = ground_truth(bag, start)
