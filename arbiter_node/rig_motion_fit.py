@@ -24,6 +24,11 @@ from scipy.optimize import least_squares
 
 from multicam_ego_motion.geometry import se3
 
+# Steps per fit, at most (scipy's default is 600): it runs on the general arbiter's thread.
+# Measured: median 5-6, at most 36 (loop) and 46 (spin_then_drive's start, from rest), 40 ms;
+# a cap of 12 lost the spin's start. One that has not converged by 50 is rejected.
+MAX_EVALUATIONS = 50
+
 
 @dataclass
 class CameraTracks:
@@ -90,7 +95,7 @@ def fit_rig_motion(R0: np.ndarray, t0: np.ndarray, cameras: List[CameraTracks],
         fail.reason = 'no start translation'
         return fail
     sol = least_squares(_residuals, np.r_[np.zeros(3), t0], args=(np.asarray(R0, float), cameras),
-                        loss='huber', f_scale=1.0)
+                        loss='huber', f_scale=1.0, max_nfev=MAX_EVALUATIONS)
     r = sol.fun
     inl = np.abs(r) < inlier_sigmas
     R = se3.rotvec_to_R(sol.x[:3]) @ R0
