@@ -295,6 +295,8 @@ class GeneralArbiterNode(Node):
             {'state': fused.state, 'scale_observed': fused.scale_observed,
              'scale_source': fused.scale_fixed_by,
              'scale_relative_std': round(float(fused.scale_relative_std), 6),
+             'scale_observations': self.fusion.scale.n_observations,
+             'rig_fit': self.fusion.scale.fit_summary(),
              'cameras_used': ','.join(fused.cameras_used), 'cameras_missing': ','.join(missing),
              'frame_stride': self.governor.stride, 'arbiter_ms': ms,
              'estimates_off_schedule': self.off_schedule,

@@ -76,6 +76,7 @@ class ScaleState:
         self.bearings: Dict[str, Dict[int, dict]] = {}
         self.pair_end = None                           # stamp: track pairs do not overlap
         self.last_fit = None                           # rig_motion_fit.RigMotionFit, diagnostics
+        self.n_observations = 0                        # scale observations fused (diagnostics)
 
     def add_bearings(self, camera: str, quarter: int, stamp_ns: int, ids, xy, sigma):
         """One quarter's tracks at one of its frames (normalised points, their std)."""
@@ -164,6 +165,7 @@ class ScaleState:
         self.P *= (1.0 - g)
         self.observed = True
         self.last_ratio = k
+        self.n_observations += 1
 
     def tracks_between(self, stamps_a: Dict[str, int], stamps_b: Dict[str, int], frame_a: int,
                        frame_b: int) -> List[CameraTracks]:
@@ -226,6 +228,16 @@ class ScaleState:
             # One std for every pair, not the fit's prediction: weighted by that, the scale
             # read 2-3 % low (the prediction is smaller where |t| came out short).
             self._update(k, p['scale_pair_std'])
+
+    def fit_summary(self) -> str:
+        """The last rig-motion fit to the quarters' tracks, for /diagnostics: what it used,
+        or why it was not usable; '' before any."""
+        f = self.last_fit
+        if f is None:
+            return ''
+        if not f.ok:
+            return f'not used: {f.reason}'
+        return f'{f.n_inliers} of {f.n_points} tracks, {f.rms:.2f} sigma rms, |t| std {f.relative_std:.3f}'
 
     def decide(self, stamp_ns: int, T_now: np.ndarray) -> Optional[MapScaleCommand]:
         """A rescale command, from the next frame on, when the scale is known well enough

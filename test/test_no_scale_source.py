@@ -75,6 +75,9 @@ def test_diagnostics_and_covariance_tell_the_scale(run):
     assert turned, 'the rig rotation never fixed the scale'
     assert all(s == 'rig rotation' for t, s, _ in sources if t >= turned[0])
     assert all(std <= 0.1 for t, s, std in sources if t >= turned[0])
+    # the observations come from the quarters' tracks (one per turning frame pair)
+    assert int(diags[-1].values['scale_observations']) >= 20
+    assert ' tracks, ' in diags[-1].values['rig_fit'] or 'not used: ' in diags[-1].values['rig_fit']
     # Before: /odom's position covariance along the travel is as large as the travel.
     stamps, T, P, _ = run.odometry()
     i = int(np.flatnonzero((stamps > 1.5) & (stamps < turned[0]))[-1])
