@@ -368,9 +368,8 @@ class GeneralFusion:
         if (np.linalg.norm(rotvec) < p['scale_pair_rotation_rad']
                 or np.sqrt(np.trace(C[3:, 3:])) > p['start_max_translation_std_m']):
             return False
-        cov = np.zeros((6, 6))
-        cov[:3, :3], cov[3:, 3:] = C[3:, 3:], C[:3, :3]
-        cov[:3, 3:], cov[3:, :3] = C[3:, :3], C[:3, 3:]
+        vw = [3, 4, 5, 0, 1, 2]     # the fit's (rotation, t) -> the twist's (v, w)
+        cov = C[np.ix_(vw, vw)]
         # x4: single fits scatter about twice their predicted std (docs/fusion.md, scale)
         used, _ = self.ekf.update_twist(np.r_[fit.t, rotvec] / dt, 4.0 * cov / dt ** 2)
         return used

@@ -53,17 +53,13 @@ class RigMotionFit:
     reason: str = ''
 
 
-def _skew(v):
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def _residuals(x, R0, cameras: Sequence[CameraTracks]):
     R = se3.rotvec_to_R(x[:3]) @ R0
     t = x[3:]
     out = []
     for c in cameras:
         Rc = c.R_base_cam
-        E = _skew(Rc.T @ (R @ c.centre + t - c.centre)) @ (Rc.T @ R @ Rc)
+        E = se3.skew(Rc.T @ (R @ c.centre + t - c.centre)) @ (Rc.T @ R @ Rc)
         ha = np.column_stack([c.xa, np.ones(len(c.xa))])
         hb = np.column_stack([c.xb, np.ones(len(c.xb))])
         Exb = hb @ E.T

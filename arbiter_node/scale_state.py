@@ -44,13 +44,7 @@ BEARING_STAMPS_KEPT = 12      # per camera: a pair spans at most scale_pair_max_
 
 def metric_source(rig, wheel_seen: bool) -> Optional[str]:
     """The scale source other than the rig's rotation, or None."""
-    if tuple(getattr(rig, 'stereo_pairs', ()) or ()):
-        return 'stereo'
-    if rig.floor_z is not None:
-        return 'floor'
-    if wheel_seen:
-        return 'wheel'
-    return None
+    return rig.metric_source or ('wheel' if wheel_seen else None)
 
 
 def rescale_body_ekf(ekf, k: float, centre):

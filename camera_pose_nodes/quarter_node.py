@@ -130,9 +130,9 @@ class QuarterNode(Node):
                            if p['debug_images'] else None)
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'pose', RELIABLE)
         # Without floor and stereo the general arbiter measures the scale from every quarter's
-        # tracks (scale_state.metric_source; a wheel, when one comes, makes them unused)
+        # tracks (a wheel, when one comes, makes them unused)
         self.pub_bearings = (self.create_publisher(PointCloud2, 'bearings', RELIABLE)
-                             if rig.floor_z is None and not rig.stereo_pairs else None)
+                             if rig.metric_source is None else None)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         # topic -> (type, QoS, callback) of the per-frame inputs
         # (the schedule first: an executor takes ready subscriptions in creation order)

@@ -53,7 +53,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
                         f'({", ".join(c.image_topic for c in rig.cameras)})')
     qp = QuarterParams(**(quarter_params or {}))
     fusion = GeneralFusion(rig, fusion_params or {})
-    sends_bearings = rig.floor_z is None and not rig.stereo_pairs     # as quarter_node
+    sends_bearings = rig.metric_source is None     # as the quarter nodes
     topics = [c.image_topic for c in present] + [c.camera_info_topic for c in present
                                                   if c.camera_info_topic in reader.topics]
     wheel_topic = '/wheel/odom' if use_wheel and '/wheel/odom' in reader.topics else None

@@ -62,6 +62,17 @@ class Rig:
     # False when the rig file names stereo_pairs (even an empty list): named pairs win
     detect_stereo: bool = True
 
+    @property
+    def metric_source(self) -> Optional[str]:
+        """What gives this rig metric scale by itself: 'stereo' (stereo_pairs), 'floor'
+        (floor_z) or None (then the general arbiter measures it from the quarters' tracks,
+        which the quarter nodes publish only then)."""
+        if self.stereo_pairs:
+            return 'stereo'
+        if self.floor_z is not None:
+            return 'floor'
+        return None
+
     def stereo_partners(self, name: str) -> List[str]:
         """The cameras named with `name` in a stereo pair, in pair order."""
         return [b if a == name else a for a, b in self.stereo_pairs if name in (a, b)]
