@@ -437,9 +437,10 @@ class QuarterEstimator:
             # floor landmarks at once.
             s0, s1 = sorted(self.fused_poses)[-2:]
             dt = (s1 - s0) * 1e-9
-            w = R_to_rotvec(self.fused_poses[s0][:3, :3].T @ self.fused_poses[s1][:3, :3]) / dt if dt > 0 else None
-            if w is not None and dt <= _PREDICT_MAX_DT_S and np.linalg.norm(w) > 1e-6:
-                self._motion = (int(stamp_ns), w)
+            if 0.0 < dt <= _PREDICT_MAX_DT_S:
+                w = R_to_rotvec(self.fused_poses[s0][:3, :3].T @ self.fused_poses[s1][:3, :3]) / dt
+                if np.linalg.norm(w) > 1e-6:
+                    self._motion = (int(stamp_ns), w)
 
     def _flow_predictor(self, stamp_ns):
         """(forward, backward) pixel maps of the camera's rotation from the last estimate to
