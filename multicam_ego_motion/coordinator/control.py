@@ -20,7 +20,8 @@ between hosts adds confidentiality).
 Messages (tuples):
   worker -> coordinator  (HELLO, index, pid, host)      index -1: a hot spare; REMOTE: a
                                                         worker that joins from elsewhere
-                         (SNAPSHOT, key, state_pickle)  a stateful node finished a frame
+                         (SNAPSHOT, key, state_pickle)  a remote worker's node finished a frame
+                                                        (local workers write snapshot_store.py)
                          (REPLY, request_id, dict)      answer to ATTACH / DETACH / LINKS
                          (COSTS, (sec, nanosec), [(name, {key: value})])
                                                         the hosted nodes' stage times of a

@@ -4,7 +4,8 @@
   anything is measured every quarter costs the same.
 * Control channel (control.py): one authenticated connection per worker (a Unix socket for
   the workers it starts; TCP for remote workers when `listen` is given); attach / detach
-  nodes, state snapshots after every frame of every stateful node.
+  nodes; state snapshots of every stateful node go to a folder on this host
+  (snapshot_store.py: written there directly by the local workers).
 * Remote workers (`listen`, `remote_workers`): R of the M worker slots are filled by
   `worker --coordinator HOST:PORT` processes on other hosts, which join over TCP with the
   shared key; the coordinator sends them the rig, the params and the namespace's remappings,
@@ -53,6 +54,7 @@ from multicam_ego_motion.coordinator.allocation import (Allocation, allocate, ev
 from multicam_ego_motion.coordinator.cost_monitor import CostMonitor
 from multicam_ego_motion.coordinator.graph_spec import (graph_nodes, normalize_namespace, remappings, ros_args,
                                                         topic_parameter_values, under)
+from multicam_ego_motion.coordinator.snapshot_store import SnapshotStore
 from multicam_ego_motion.errors import UserError
 
 START_TIMEOUT_S = 60.0
@@ -126,7 +128,7 @@ class Coordinator:
         self.logger = logger
         self.costs = CostMonitor(rig.names)
         self.stats = CoordinatorStats()
-        self.snapshots: Dict[str, bytes] = {}
+        self.snapshots = SnapshotStore()           # node key -> its newest state (snapshot_store.py)
         self.placement: Dict[str, int] = {}        # node key -> worker index
         self.allocation: Optional[Allocation] = None
         self.on_restored: List[Callable[[int], None]] = []
@@ -246,6 +248,7 @@ class Coordinator:
         for listener in (self._listener, self._tcp):
             if listener is not None:
                 listener.close()
+        self.snapshots.close()
 
     def __enter__(self):
         return self.start()
@@ -294,7 +297,7 @@ class Coordinator:
             h.log.close()
         h.log = open(self.log_dir / (f'worker_{h.index}.log' if h.index >= 0 else 'worker_spare.log'), 'a')
         cmd = [sys.executable, '-m', WORKER_MODULE, '--index', str(h.index),
-               '--control', self._listener.address]
+               '--control', self._listener.address, '--state-dir', str(self.snapshots.folder)]
         if self.params_file:
             cmd += ['--params-file', self.params_file]
         if self.namespace:
@@ -419,7 +422,7 @@ class Coordinator:
             while True:
                 msg = conn.recv(timeout=timeout)
                 if msg[0] == control.SNAPSHOT:
-                    self.snapshots[msg[1]] = msg[2]
+                    self.snapshots.put(msg[1], msg[2])      # a remote worker's
                 elif msg[0] == control.COSTS:
                     self._on_costs(*msg[1:])
                 elif msg[0] == control.REPLY:
@@ -574,7 +577,8 @@ class Coordinator:
             if self.link_waiter:
                 self.link_waiter(spec, 'detached', readers[0])
             t.append(time.monotonic())
-            self.snapshots[key] = reply['state']
+            if reply['state'] is not None:
+                self.snapshots.put(key, reply['state'])
             try:
                 self._attach(self.workers[dst], key, reply['state'], wait_links=True)
             except WorkerDied as e:

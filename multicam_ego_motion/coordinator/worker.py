@@ -2,12 +2,13 @@
 the coordinator over its control channel.
 
 Started by the coordinator: `python -m multicam_ego_motion.coordinator.worker --index I
---control ADDRESS [--params-file F] [--namespace NS --ros-args -r FROM:=TO ...]`, the
+--control ADDRESS --state-dir DIR [--params-file F] [--namespace NS --ros-args -r FROM:=TO ...]`, the
 channel's auth key in $EGO_MOTION_CONTROL_KEY (a namespaced graph: graph_spec.py). It
 connects back, says hello, then serves the commands of control.py: attach a node (with the
-state it carries on), detach a node (returning its state), stop. After every frame a stateful
-node (quarter, general arbiter) sends its state to the coordinator as a snapshot, which is
-what a restarted worker is restored from.
+state it carries on), detach a node (returning its state), stop. After its frames a stateful
+node (quarter, general arbiter) leaves its state as a snapshot in the coordinator's folder
+(snapshot_store.py; a remote worker sends it over the channel), which is what a restarted
+worker is restored from.
 
 On another host: `worker --coordinator HOST:PORT [--key-file F]` (`ros2 run
 multicam_ego_motion worker`, `ego-motion worker`) joins a coordinator that listens there
@@ -45,6 +46,7 @@ from rclpy.parameter import Parameter
 from multicam_ego_motion.coordinator import control
 from multicam_ego_motion.coordinator.cost_monitor import cost_values
 from multicam_ego_motion.coordinator.idle_gc import IdleCollector
+from multicam_ego_motion.coordinator.snapshot_store import SnapshotStore
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.ros_plumbing.lean_executor import LeanExecutor
 from multicam_ego_motion.ros_plumbing.lean_node import strip_event_handlers
@@ -110,8 +112,11 @@ def linked(node, shared=(), graph_only=False) -> bool:
 
 
 class Worker:
-    def __init__(self, index: int, conn, params_file, namespace: str = '/', paths=None):
+    def __init__(self, index: int, conn, params_file, namespace: str = '/', paths=None, state_dir=None):
+        """state_dir: the coordinator's snapshot folder on this host (snapshot_store.py), or
+        None (a remote worker): snapshots then go over the control channel."""
         self.index = index
+        self.snapshots = SnapshotStore(state_dir) if state_dir else None
         self.paths = paths or {}        # coordinator's file path -> this host's copy (remote)
         self.lost = None                # why the coordinator was lost, if it was
         self.conn = conn
@@ -298,15 +303,22 @@ class Worker:
             self.ticker.cancel()
 
     def snapshot(self, key, node):
-        # A quarter's state is ~40 kB and the coordinator reads it on a thread of a busy
-        # process: every frame cost ~14 % of a worker. A quarter restored from a few frames
-        # back just tracks across the gap; the general arbiter (small, and the odometry's
-        # continuity) is saved every frame.
+        # A quarter's state is ~70 kB: pickling it every frame cost more than the gap saves
+        # (a quarter restored from a few frames back just tracks across it); the general
+        # arbiter (12 kB, and the odometry's continuity) is saved every frame.
         count = self.frames_done.get(key, 0)
         self.frames_done[key] = count + 1
         if key != 'general_arbiter' and count % QUARTER_SNAPSHOT_EVERY:
             return
-        self.send((control.SNAPSHOT, key, pickle.dumps(node.get_state(), protocol=pickle.HIGHEST_PROTOCOL)))
+        data = pickle.dumps(node.get_state(), protocol=pickle.HIGHEST_PROTOCOL)
+        if self.snapshots is not None:
+            try:
+                self.snapshots.put(key, data)
+            except (OSError, ValueError) as e:    # a restore then starts from an older one
+                self.node.get_logger().error(f'{key}: state snapshot not saved: {e}',
+                                             throttle_duration_sec=10.0)
+        else:
+            self.send((control.SNAPSHOT, key, data))
 
     def attach(self, req, spec, state_bytes, wait_links=False):
         key = spec['key']
@@ -515,6 +527,7 @@ def main(argv=None):
     ap.add_argument('--control', required=True, help='address of the coordinator\'s control channel')
     ap.add_argument('--params-file')
     ap.add_argument('--namespace', default='/', help='the graph\'s namespace (its remappings follow --ros-args)')
+    ap.add_argument('--state-dir', help='the coordinator\'s snapshot folder on this host (snapshot_store.py)')
     # --ros-args (the namespace's remappings) are rclpy.init's: it reads them from sys.argv
     from rclpy.utilities import remove_ros_args
     args = ap.parse_args(remove_ros_args(sys.argv if argv is None else ['worker', *argv])[1:])
@@ -542,7 +555,7 @@ def main(argv=None):
         profiler = cProfile.Profile(time.thread_time)   # CPU time: wall time charged other processes' turns to whatever ran
         profiler.enable()
     try:
-        Worker(args.index, conn, args.params_file, args.namespace).spin()
+        Worker(args.index, conn, args.params_file, args.namespace, state_dir=args.state_dir).spin()
     except (KeyboardInterrupt, SystemExit, ExternalShutdownException):
         pass
     finally:
