@@ -23,9 +23,9 @@ Messages (tuples):
                          (SNAPSHOT, key, state_pickle)  a remote worker's node finished a frame
                                                         (local workers write snapshot_store.py)
                          (REPLY, request_id, dict)      answer to ATTACH / DETACH / LINKS
-                         (COSTS, (sec, nanosec), [(name, {key: value})])
-                                                        the hosted nodes' stage times of a
-                                                        frame (their /diagnostics values the
+                         (COSTS, [((sec, nanosec), [(name, {key: value})])])
+                                                        the hosted nodes' stage times of a few
+                                                        frames (their /diagnostics values the
                                                         allocation reads)
                          (PING,)                        heartbeat
   coordinator -> worker  (WELCOME, index, config)       to a joining worker: its slot, the

@@ -424,7 +424,7 @@ class Coordinator:
                 if msg[0] == control.SNAPSHOT:
                     self.snapshots.put(msg[1], msg[2])      # a remote worker's
                 elif msg[0] == control.COSTS:
-                    self._on_costs(*msg[1:])
+                    self._on_costs(msg[1])
                 elif msg[0] == control.REPLY:
                     with self._reply_cond:
                         self._replies[msg[1]] = msg[2]
@@ -653,9 +653,9 @@ class Coordinator:
 
     # ---- ROS side: the coordinator's own diagnostics -------------------------------------
     def attach_ros(self, node, rate_mode_period_s: Optional[float] = None):
-        """Publish the coordinator's /diagnostics entry on `node` once per frame (when a
-        frame's costs came in from the workers). With `rate_mode_period_s`, rebalancing runs
-        on a timer (no lockstep hook)."""
+        """Publish the coordinator's /diagnostics entry on `node` for every frame whose costs
+        came in from the workers (a few frames at a time: worker.COSTS_EVERY). With
+        `rate_mode_period_s`, rebalancing runs on a timer (no lockstep hook)."""
         from diagnostic_msgs.msg import DiagnosticArray
 
         from multicam_ego_motion.ros_plumbing.qos import RELIABLE
@@ -680,27 +680,31 @@ class Coordinator:
                     self._bg_busy.release()
             threading.Thread(target=run, daemon=True).start()
 
-    def _on_costs(self, stamp, entries):
-        # Workers' reader threads: one at a time into the cost monitor.
+    def _on_costs(self, frames):
+        # Workers' reader threads: one at a time into the cost monitor (a worker sends a few
+        # frames at once; the coordinator's /diagnostics entry still goes out for each).
         with self._costs_lock:
-            closed = False
-            for name, values in entries:
-                closed |= self.costs.observe(name, values)
-            if closed and self._diag_pub is not None:
-                from builtin_interfaces.msg import Time
-                self._publish_diag(Time(sec=stamp[0], nanosec=stamp[1]))
+            for stamp, entries in frames:
+                closed = False
+                for name, values in entries:
+                    closed |= self.costs.observe(name, values)
+                if closed:
+                    self._note_gain()
+                    if self._diag_pub is not None:
+                        from builtin_interfaces.msg import Time
+                        self._publish_diag(Time(sec=stamp[0], nanosec=stamp[1]))
 
-    def _note_gain(self, current: Allocation, version: int):
+    def _note_gain(self):
         if not self.rebalance_enabled or not self.costs.measured:
             return
-        ok, _, _ = frame_gain(self.costs.quarter_costs(), current, self.threshold, **self._cost_kw())
+        version = self._placement_version
+        ok, _, _ = frame_gain(self.costs.quarter_costs(), self.current_allocation(), self.threshold,
+                              **self._cost_kw())
         self._gains.append((version, ok))
 
     def _publish_diag(self, stamp):
         from multicam_ego_motion.ros_plumbing import diagnostics
-        version = self._placement_version
         a = self.current_allocation()
-        self._note_gain(a, version)
         values = {'workers': self.n_workers, 'imbalance': float(a.imbalance),
                   'makespan_ms': float(a.makespan_ms), 'migrations': self.stats.migrations,
                   'rebalances': self.stats.rebalances, 'restarts': self.stats.restarts}

@@ -58,6 +58,10 @@ DETACH_IDLE_TIMEOUT_S = 2.0
 QUARTER_SNAPSHOT_EVERY = 5   # frames between state snapshots of a quarter node
 NODE_POLL_S = 0.1            # the nodes' own POLL_PERIOD_S
 DIAG_STRAGGLER_S = 0.25      # a frame's /diagnostics batch still incomplete after this goes out
+# The hosted nodes' costs go to the coordinator a few frames at a time: each message is a
+# wake-up of its process on the same cores, and the allocation needs trends, not each frame.
+COSTS_EVERY = 8               # frames per COSTS message
+COSTS_MAX_AGE_S = 0.5         # ... or sooner, once the oldest waited this long
 
 
 def _die_with_parent():
@@ -152,6 +156,7 @@ class Worker:
         self.diag_pub = self.node.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         self.diag_batches = {}          # (sec, nanosec) -> (stamp, [DiagnosticStatus], opened at)
         self.diag_expected = None       # status names of a complete batch (hosted nodes')
+        self.costs_out = []             # [(stamp key, [(name, values)], when)] not sent yet
         strip_event_handlers(self.node)
         # Shared inputs: one subscription per topic for all hosted quarters (a camera's image,
         # the fused pose) calling each one's callback. Per quarter, they were 2 takes and 2
@@ -229,6 +234,8 @@ class Worker:
         for k in sorted(self.diag_batches):
             if now - self.diag_batches[k][2] > DIAG_STRAGGLER_S:
                 self.flush_diagnostics(k)
+        if self.costs_out and now - self.costs_out[0][2] > COSTS_MAX_AGE_S:
+            self.send_costs()
 
     def collect_diagnostic(self, stamp, status):
         key = (stamp.sec, stamp.nanosec)
@@ -248,7 +255,14 @@ class Worker:
             stamp, statuses, _ = self.diag_batches.pop(k)
             self.diag_pub.publish(diagnostics.array(stamp, statuses))
             # The allocation's input, without the coordinator decoding the whole batch.
-            self.send((control.COSTS, k, [(s.name, cost_values(s)) for s in statuses]))
+            self.costs_out.append((k, [(s.name, cost_values(s)) for s in statuses], time.monotonic()))
+        if self.costs_out and (len(self.costs_out) >= COSTS_EVERY
+                               or time.monotonic() - self.costs_out[0][2] > COSTS_MAX_AGE_S):
+            self.send_costs()
+
+    def send_costs(self):
+        frames, self.costs_out = self.costs_out, []
+        self.send((control.COSTS, [(k, entries) for k, entries, _ in frames]))
 
     def send(self, msg):
         with self.send_lock:
