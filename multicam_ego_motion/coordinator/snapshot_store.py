@@ -2,10 +2,10 @@
 
 Workers the coordinator starts write their nodes' snapshots straight into the folder (on
 /dev/shm, i.e. memory, where the host has it): no control-channel message, no HMAC, and no
-wake-up of the coordinator's process for each one. Through the channel they were about 1 ms
-of CPU per frame of the default bag (the general arbiter every frame, a quarter every 5th:
-~250 kB a frame pickled, framed, authenticated, received and kept), on the same two cores as
-the estimator. Remote workers cannot reach the folder: their snapshots come over the channel
+wake-up of the coordinator's process for each one. Through the channel, framing,
+authenticating, receiving and keeping them cost about 1 ms of CPU per frame of the default bag
+on top of pickling them (the general arbiter every frame, a quarter every 5th: ~250 kB a
+frame), on the same two cores as the estimator. Remote workers cannot reach the folder: their snapshots come over the channel
 and the coordinator puts them here, as it does a detached node's state; so the folder always
 holds each node's newest state, and a restore reads it from there.
 
