@@ -234,8 +234,7 @@ class Worker:
         for k in sorted(self.diag_batches):
             if now - self.diag_batches[k][2] > DIAG_STRAGGLER_S:
                 self.flush_diagnostics(k)
-        if self.costs_out and now - self.costs_out[0][2] > COSTS_MAX_AGE_S:
-            self.send_costs()
+        self.send_costs_if_due()
 
     def collect_diagnostic(self, stamp, status):
         key = (stamp.sec, stamp.nanosec)
@@ -256,13 +255,13 @@ class Worker:
             self.diag_pub.publish(diagnostics.array(stamp, statuses))
             # The allocation's input, without the coordinator decoding the whole batch.
             self.costs_out.append((k, [(s.name, cost_values(s)) for s in statuses], time.monotonic()))
+        self.send_costs_if_due()
+
+    def send_costs_if_due(self):
         if self.costs_out and (len(self.costs_out) >= COSTS_EVERY
                                or time.monotonic() - self.costs_out[0][2] > COSTS_MAX_AGE_S):
-            self.send_costs()
-
-    def send_costs(self):
-        frames, self.costs_out = self.costs_out, []
-        self.send((control.COSTS, [(k, entries) for k, entries, _ in frames]))
+            frames, self.costs_out = self.costs_out, []
+            self.send((control.COSTS, [(k, entries) for k, entries, _ in frames]))
 
     def send(self, msg):
         with self.send_lock:
