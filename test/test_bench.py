@@ -71,6 +71,8 @@ def test_targets_from_given_numbers():
     assert over.measured.startswith('25.5 ms') and over.met is False     # 165 + 8.5 - 148
     sp = t['speedup at M = 2']
     assert sp.measured == '1.60 (the CPU time allows 1.74)' and sp.met is False
+    sp = targets(floor_bound=1.77)['speedup at M = 2']
+    assert sp.measured == "1.60 (the CPU time allows 1.74; the transport's floor alone 1.77)"
     m1 = t['graph at M = 1']
     assert m1.measured == '1.07 x' and m1.met is True
     assert t['default bag, rate mode, M = 2'].met is True
@@ -105,7 +107,7 @@ def test_targets_table_one_row_each():
 def test_bench_help_lists_the_skip_options():
     r = run_cli('bench', '--help')
     assert r.returncode == 0, r.stderr
-    for opt in ('--skip-camera-rate', '--skip-live-vs-offline', '--camera-rate-bags'):
+    for opt in ('--skip-transport-floor', '--skip-camera-rate', '--skip-live-vs-offline', '--camera-rate-bags'):
         assert opt in r.stdout
 
 

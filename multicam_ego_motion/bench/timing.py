@@ -5,7 +5,8 @@ lockstep at M = 1 and M = 2 workers (wall time per frame, speedup, efficiency, i
 (Ts - Tpar) / Ts; each of these three runs twice and the faster counts: a shared host's
 speed varies by 10-20 % within minutes), the graph in rate mode at the bag's rate on M = 2 (real-time factor,
 latency from the player publishing a frame to /odom arriving, dropped frames, peak memory),
-the camera-rate row (four 640x480 cameras at 30 Hz in rate mode on M = 2: camera_rate.py),
+the transport's floor (the same graph with quarters that do no work: transport_floor.py), the
+camera-rate row (four 640x480 cameras at 30 Hz in rate mode on M = 2: camera_rate.py),
 accuracy live vs offline at 15 and 30 Hz (live_offline.py), the track CPU per tracked
 point, the targets, one row each with met or missed (targets.py), and the paper's model
 (parallel_time_model) fed with the median stage times measured in the M = 2 lockstep run,
@@ -14,7 +15,7 @@ work (machine_speed.py), so that runs on different machines compare. Measured, n
 The VGA bags are generated on first use into --camera-rate-bags and reused; a worker killed
 mid-run (worker_crash.py: time to restore), and the two-host row (two_hosts.py: M = 2 with the second worker in another
 network namespace, i.e. across UDP and a TCP control channel, beside the one-host M = 2 row;
-skipped with the reason where namespaces cannot be made). --skip-camera-rate,
+skipped with the reason where namespaces cannot be made). --skip-transport-floor, --skip-camera-rate,
 --skip-live-vs-offline, --skip-worker-crash and --skip-two-hosts leave out the long parts.
 Writes DIR/bench.md and DIR/model.png.
 """
@@ -40,6 +41,8 @@ def configure_parser(p):
     p.add_argument('--camera-rate-bags', metavar='DIR',
                    help='cache of the generated VGA bags (15 and 30 Hz), made on first use and reused '
                         '(default: bench_bags beside --out, e.g. out/bench_bags)')
+    p.add_argument('--skip-transport-floor', action='store_true',
+                   help='leave out the transport floor (the graph with quarters that do no work: transport_floor.py)')
     p.add_argument('--skip-camera-rate', action='store_true',
                    help='leave out the camera-rate row (4 x 640x480 at 30 Hz, rate mode)')
     p.add_argument('--skip-live-vs-offline', action='store_true',
@@ -104,6 +107,13 @@ def run(args) -> int:
     lines = timing_lines(args.bag, n_frames, bag_s, d, rate)
     lines[1:1] = ['', speed.line()]
 
+    # the transport's floor: the same graph with quarters that do no work
+    floor = None
+    if not args.skip_transport_floor:
+        from multicam_ego_motion.bench.transport_floor import transport_floor
+        floor = transport_floor(args.bag, out / 'transport_floor', params, args.duration)
+        lines += [''] + floor.lines(d.Ts)
+
     # 4. camera rate (VGA 30 Hz) and 5. accuracy live vs offline (VGA 15 and 30 Hz)
     cam_rate = live_off = None
     if not args.skip_camera_rate:
@@ -149,6 +159,7 @@ def run(args) -> int:
     targets = bench_targets.bench_targets(
         seq_ms=d.Ts, seq_cpu_ms=d.Ts_cpu, m1_ms=d.best[1][0], m2_ms=d.best[2][0],
         graph_cpu_m2_ms=d.best[2][2], replay_cpu_m2_ms=d.best[2][3], speedup_bound=d.ceiling,
+        floor_bound=floor.allowed_speedup(d.Ts) if floor else None,
         default_rate=rate, camera_rate=cam_rate.figures if cam_rate else None,
         live_offline=live_off.relative if live_off else None,
         skipped_camera_rate='--skip-camera-rate', skipped_live_offline='--skip-live-vs-offline')

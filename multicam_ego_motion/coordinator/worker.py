@@ -550,6 +550,9 @@ def main(argv=None):
     # nodes' stage times (CPU time of the calling thread), which are the costs balanced.
     import cv2
     cv2.setNumThreads(1)
+    # EGO_MOTION_NULL_ESTIMATOR=1 (the bench's transport floor): the quarters do no work.
+    from multicam_ego_motion.bench import transport_floor
+    transport_floor.installed_from_environment()
     # Import the node modules before saying hello: a spare that takes over a dead worker
     # then only creates nodes (restore within 2 s even on a loaded machine).
     for kind in ('quarter', 'camera_arbiter', 'general_arbiter'):
