@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from multicam_ego_motion.bench.measures import read_statuses, is_quarter
 from multicam_ego_motion.bench.transport_floor import ENV, FloorRuns, transport_floor
 from multicam_ego_motion.evaluation.trajectory_io import read_bag_topic
@@ -66,3 +68,9 @@ def test_floor_run_puts_idle_quarters_in_every_worker(tmp_path):
     # every quarter of both workers answered, and none of them tracked a feature
     assert len(quarters) == 16 * r.frames
     assert all(v['features'] == '0' and v['state'] == 'tracking' for v in quarters)
+
+
+def test_a_failed_floor_run_raises_with_the_child_output(tmp_path):
+    with pytest.raises(RuntimeError) as e:
+        transport_floor(tmp_path / 'no_such_bag', tmp_path / 'floor', default_params(), runs=1)
+    assert 'transport floor run failed' in str(e.value) and 'no_such_bag' in str(e.value)
