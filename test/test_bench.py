@@ -75,6 +75,8 @@ def test_targets_from_given_numbers():
     assert sp.measured == "1.60 (the CPU time allows 1.74; the transport's floor alone 1.77)"
     m1 = t['graph at M = 1']
     assert m1.measured == '1.07 x' and m1.met is True
+    m1 = targets(m1_seq_ms=120.0)['graph at M = 1']     # against the sequential runs around it
+    assert m1.measured == '1.33 x' and m1.met is False
     assert t['default bag, rate mode, M = 2'].met is True
     cam = next(v for k, v in t.items() if k.startswith('camera rate'))
     assert cam.measured == 'RTF 0.86, 33 of 301 dropped, p99 250 ms' and cam.met is False
@@ -143,3 +145,19 @@ def test_machine_speed_reference_work():
     assert 0.0 < s.lk_us_per_point < 1e4 and 0.0 < s.python_ms < 1e5
     line = s.line()
     assert f'{s.lk_us_per_point:.1f} us per point' in line and f'{s.python_ms:.1f} ms' in line
+
+
+def test_each_graph_run_is_compared_with_the_sequential_runs_around_it():
+    from multicam_ego_motion.bench.timing import DefaultBagRuns
+    # the host slowed down between the runs: the sequential pipeline took 30 ms, then 36, then 36
+    d = DefaultBagRuns(seq_runs=[(30.0, 30.0), (36.0, 36.0), (36.0, 36.0)],
+                       lockstep_runs={1: [(33.0, 10, 33.0, 2.0), (39.6, 10, 39.6, 2.0)],
+                                      2: [(18.0, 10, 34.0, 2.0), (20.5, 10, 40.0, 2.0)]},
+                       brackets={1: [0, 1], 2: [0, 1]}, rate_run=None, cores=2)
+    # M = 2: 33 / 18 = 1.83 in the first minutes, 36 / 20.5 = 1.76 later: the first counts,
+    # against the sequential runs around it (not the fastest of all: 30 / 18 = 1.67)
+    assert d.best[2] == (18.0, 10, 34.0, 2.0)
+    assert d.Ts == 33.0 and d.Ts_cpu == 33.0
+    assert math.isclose(d.ceiling, 33.0 / (36.0 / 2))
+    # M = 1: 33 / 33 = 1.0 against 36 / 39.6 = 0.91: the first, with its own sequential runs
+    assert d.best[1][0] == 33.0 and d.sequential_around(1) == (33.0, 33.0)

@@ -2,7 +2,7 @@
 coordinator's host and one on a second host (two network namespaces of this machine,
 bench/netns.py: UDPv4 between them, the control channel over TCP with the shared key).
 Wall and CPU per frame (workers on both hosts, and the replay process), beside the one-host
-M = 2 row (each ran twice, the faster counts): the difference is what crossing hosts costs (UDP through a network stack instead
+M = 2 row (each ran twice; the faster two-host run and the counted one-host run): the difference is what crossing hosts costs (UDP through a network stack instead
 of shared memory, the control channel over TCP). Skipped, with the reason printed, where
 namespaces cannot be made (not root, no `ip`).
 
@@ -62,7 +62,7 @@ def two_hosts(bag, out: Path, rig_file, params, duration=None) -> TwoHostFigures
     address = f'{netns.SUBNET}.1:{PORT}'
     runs = []
     with netns.Hosts(2, free_domain()) as hosts:
-        # twice, the faster counts, as the one-host rows (timing.py says why)
+        # twice, the faster counts, as for the one-host rows (timing.py says why)
         for suffix in ('', '_again'):
             run_dir = (out / f'two_hosts_m2{suffix}').resolve()
             run_dir.mkdir(parents=True)
