@@ -61,7 +61,7 @@ def test_null_estimator_answers_every_image_without_tracking():
 
 
 def test_floor_run_puts_idle_quarters_in_every_worker(tmp_path):
-    r = transport_floor(BAG, tmp_path / 'floor', default_params(), duration=1.5, runs=1)
+    r = transport_floor(BAG, tmp_path / 'floor', BAG / 'rig.yaml', default_params(), duration=1.5, runs=1)
     assert r.frames >= 10
     assert len(r.seq_cpu_ms) == 2 and min(r.seq_cpu_ms) > 0      # before and after the graph run
     (workers, replay), = r.graph_cpu_ms
@@ -76,5 +76,5 @@ def test_floor_run_puts_idle_quarters_in_every_worker(tmp_path):
 
 def test_a_failed_floor_run_raises_with_the_child_output(tmp_path):
     with pytest.raises(RuntimeError) as e:
-        transport_floor(tmp_path / 'no_such_bag', tmp_path / 'floor', default_params(), runs=1)
+        transport_floor(tmp_path / 'no_such_bag', tmp_path / 'floor', BAG / 'rig.yaml', default_params(), runs=1)
     assert 'transport floor run failed' in str(e.value) and 'no_such_bag' in str(e.value)

@@ -31,6 +31,28 @@ def graph_run(bag, out: Path, rig, rig_file, params, workers: int, lockstep: boo
     return g, frames, g.frames_wall_s / max(frames, 1)
 
 
+def sequential_run(bag, rig, params, n_frames) -> Tuple[float, float]:
+    """One run of the sequential pipeline over the bag's first n_frames: (wall, CPU) ms per frame.
+    OpenCV on one thread, as in the paper (and as in each worker)."""
+    import time
+
+    import cv2
+
+    from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
+    from multicam_ego_motion.sequential_pipeline import run_sequential
+    print(f'bench: sequential baseline ({n_frames} frames) ...', flush=True)
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    t0, c0 = time.perf_counter(), time.process_time()
+    try:
+        seq = run_sequential(bag, rig, quarter_params_from(params), fusion_params_from(params),
+                             max_frames=n_frames)
+    finally:
+        cv2.setNumThreads(threads)
+    n = max(len(seq.fused), 1)
+    return (time.perf_counter() - t0) / n * 1e3, (time.process_time() - c0) / n * 1e3
+
+
 def bag_window(bag, duration=None) -> Tuple[int, float]:
     """(trigger frames, bag seconds) of the window the player plays; the seconds count one
     period past the last frame, so frames / seconds is the bag's rate."""

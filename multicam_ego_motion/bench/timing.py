@@ -28,7 +28,7 @@ from pathlib import Path
 
 from multicam_ego_motion.bench import machine_speed
 from multicam_ego_motion.bench.measures import (graph_run, per_frame_ms, rate_figures, read_statuses,
-                                                track_cost, write_latency_csv)
+                                                sequential_run, track_cost, write_latency_csv)
 from multicam_ego_motion.errors import UserError
 
 MODEL_WORKERS = (2, 4, 6, 8, 10, 14, 16, 24, 48)
@@ -113,7 +113,7 @@ def run(args) -> int:
     if not args.skip_transport_floor:
         from multicam_ego_motion.bench.transport_floor import transport_floor
         try:
-            floor = transport_floor(args.bag, out / 'transport_floor', params, args.duration)
+            floor = transport_floor(args.bag, out / 'transport_floor', rig_file, params, args.duration)
             lines += [''] + floor.lines(d.Ts)
         except RuntimeError as e:     # the other rows still count
             print(f'bench: {e}', flush=True)
@@ -226,22 +226,8 @@ class DefaultBagRuns:
 
 
 def default_bag_runs(args, out, rig, rig_file, params, n_frames) -> DefaultBagRuns:
-    from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
-    from multicam_ego_motion.sequential_pipeline import run_sequential
-
     def sequential():
-        print(f'bench: sequential baseline ({n_frames} frames) ...', flush=True)
-        import cv2
-        threads = cv2.getNumThreads()
-        cv2.setNumThreads(1)                 # one processor, as in the paper (and as each worker)
-        t0, c0 = time.perf_counter(), time.process_time()
-        try:
-            seq = run_sequential(args.bag, rig, quarter_params_from(params), fusion_params_from(params),
-                                 max_frames=n_frames)
-        finally:
-            cv2.setNumThreads(threads)
-        n = max(len(seq.fused), 1)
-        return (time.perf_counter() - t0) / n * 1e3, (time.process_time() - c0) / n * 1e3
+        return sequential_run(args.bag, rig, params, n_frames)
 
     # Each graph configuration runs twice, between sequential runs, and the run that did best
     # against the sequential runs around it counts: on a shared host one run can include

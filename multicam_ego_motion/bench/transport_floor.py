@@ -106,12 +106,13 @@ class FloorRuns:
                 'a millisecond or two either way.)']
 
 
-def transport_floor(bag, out: Path, params, duration: Optional[float] = None, runs: int = 3) -> FloorRuns:
+def transport_floor(bag, out: Path, rig_file, params, duration: Optional[float] = None,
+                    runs: int = 3) -> FloorRuns:
     """Run the sequential pipeline and the graph (M = 2, lockstep) with the null estimator in
     a child process; raises RuntimeError with its output when it fails."""
     out = Path(out)
     cmd = [sys.executable, '-m', 'multicam_ego_motion.bench.transport_floor', str(bag),
-           '--out', str(out), '--params', str(params), '--runs', str(runs)]
+           '--out', str(out), '--rig', str(rig_file), '--params', str(params), '--runs', str(runs)]
     if duration:
         cmd += ['--duration', str(duration)]
     print(f'bench: transport floor (the quarters doing no work), {runs} graph runs ...', flush=True)
@@ -124,32 +125,21 @@ def transport_floor(bag, out: Path, params, duration: Optional[float] = None, ru
 
 
 def _measure(args) -> dict:
-    import cv2
-    import time
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
-    from multicam_ego_motion.bench.measures import bag_window, graph_run, per_frame_ms
-    from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
+    from multicam_ego_motion.bench.measures import bag_window, graph_run, per_frame_ms, sequential_run
     from multicam_ego_motion.replay import resolve_rig
     from multicam_ego_motion.ros_plumbing import dds_transport, ros_domain
-    from multicam_ego_motion.sequential_pipeline import run_sequential
 
     if not installed_from_environment():
         raise SystemExit(f'{ENV}=1 must be set: the workers install the null estimator from it')
     ros_domain.isolate()
     dds_transport.use_graph_profile()
     out = Path(args.out)
-    rig, rig_file = resolve_rig(Rosbag2Reader(args.bag), None)
-    if rig_file is None:
-        out.mkdir(parents=True, exist_ok=True)
-        rig_file = out / 'rig.yaml'
-        rig.save(rig_file)
-    cv2.setNumThreads(1)
+    rig, rig_file = resolve_rig(Rosbag2Reader(args.bag), args.rig)
     n_frames, _ = bag_window(args.bag, args.duration)
+
     def sequential():
-        c0 = time.process_time()
-        r = run_sequential(args.bag, rig, quarter_params_from(args.params), fusion_params_from(args.params),
-                           max_frames=n_frames)
-        return (time.process_time() - c0) / max(len(r.fused), 1) * 1e3
+        return sequential_run(args.bag, rig, args.params, n_frames)[1]
 
     seq, graph, frames = [sequential()], [], 0
     for i in range(args.runs):        # each graph run between two sequential ones
@@ -163,6 +153,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('bag')
     ap.add_argument('--out', required=True)
+    ap.add_argument('--rig', required=True, help='rig YAML (the bench\'s)')
     ap.add_argument('--params', required=True)
     ap.add_argument('--duration', type=float)
     ap.add_argument('--runs', type=int, default=3, help='graph runs (each between two sequential ones)')
