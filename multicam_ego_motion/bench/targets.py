@@ -56,7 +56,8 @@ def _pct(x: float) -> str:
 
 def bench_targets(*, seq_ms: float, seq_cpu_ms: float, m1_ms: float, m2_ms: float,
                   graph_cpu_m2_ms: float, replay_cpu_m2_ms: float, speedup_bound: float,
-                  default_rate, floor_bound: Optional[float] = None, m1_seq_ms: Optional[float] = None, camera_rate=None, live_offline: Optional[Dict[float, Tuple[float, float]]] = None,
+                  default_rate, floor_bound: Optional[float] = None, m1_seq_ms: Optional[float] = None,
+                  camera_rate=None, live_offline: Optional[Dict[float, Tuple[float, float]]] = None,
                   live_offline_rates=(15.0, 30.0), skipped_camera_rate: str = '',
                   skipped_live_offline: str = '') -> List[Target]:
     """Every target of the bench. Times per frame in ms: seq_ms / seq_cpu_ms the sequential
