@@ -26,7 +26,7 @@ from camera_pose_nodes.pose_ekf import PoseEKF
 from camera_pose_nodes.pose_estimate import PoseEstimate, UNINFORMATIVE_VARIANCE, uninformative
 from camera_pose_nodes.quarter_region import QuarterRegion
 from camera_pose_nodes.stereo_match import StereoConfig, StereoPair, relative_pose
-from camera_pose_nodes import map_scale
+from camera_pose_nodes import map_scale, road_plane
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.geometry.rig import CameraMount
 from multicam_ego_motion.geometry.se3 import R_to_rotvec, rotvec_to_R
@@ -101,6 +101,8 @@ PARAMETERS = {
     'min_depth': (0.1, 'nearest accepted landmark depth (m)', 0.001, 10.0),
     'max_depth': (200.0, 'farthest accepted landmark depth (m)', 1.0, 1e5),
     'ground_plane': (True, 'put landmarks that lie on the floor onto it: their depth is then metric from the camera height (see ground_plane; needs the rig\'s floor_z)', None, None),
+    'road_landmarks': (True, "every frame, tracks that moved since the previous frame as the floor does (a plane homography whose normal and height agree with the rig's floor: road_plane) are placed on the floor from the previous fused pose: metric steps at car speed without a wheel or stereo (needs ground_plane)", None, None),
+    'road_min_step': (0.1, 'shortest camera step (m) between two frames at which road_landmarks looks for the floor (shorter: points above it move alike)', 0.001, 10.0),
     'ground_tolerance': (0.3, 'a floor landmark\'s depth is never farther than this fraction from its ray\'s floor intersection', 0.001, 1.0),
     'two_view_init': (True, 'without landmarks, floor or any motion of the fused poses, initialise from two-view geometry on the tracks (essential matrix): rotation and direction of travel, the length from two_view_nominal_speed (see two_view)', None, None),
     'two_view_min_points': (12, 'RANSAC inliers a two-view initialisation needs', 5, 1000),
@@ -307,6 +309,8 @@ class QuarterEstimator:
 
         stamp_before = self.ekf.stamp_ns
         self.ekf.predict(stamp_ns)
+        if self.uses_floor and self.params.road_landmarks:
+            self._road_landmarks(stamp_ns)
         has, X = self.landmarks.lookup(self.tracker.ids)
         n_inliers = 0
         if len(X):
@@ -674,6 +678,41 @@ class QuarterEstimator:
                                       np.broadcast_to(c_o, (N, 3)), np.broadcast_to(n, (N, 3)),
                                       np.full(N, d), self.landmarks.sigma_n)
         self.landmarks.place(ids[valid], X[valid], C[valid])
+
+    def _road_landmarks(self, stamp_ns) -> int:
+        """Tracks seen in the previous frame and in this one that move as the floor does
+        (road_plane.fit_road) and have no landmark yet: placed on the floor from the previous
+        frame's fused pose, so this frame's update measures a metric step against them."""
+        tr = self.tracker
+        if len(self.own_stamps) < 2 or self.own_stamps[-2] not in self.fused_poses:
+            return 0
+        s0 = self.own_stamps[-2]
+        rows = np.flatnonzero((tr.hist_n >= 2) & (tr.last_stamps() == stamp_ns))
+        prev = tr.hist_n[rows] - 2
+        ok = tr.hist_t[rows, prev] == s0
+        rows, prev = rows[ok], prev[ok]
+        if len(rows) < road_plane.MIN_POINTS:
+            return 0
+        T0 = self.fused_poses[s0]
+        R_oc, c_o = self._camera_pose(T0)
+        xy0 = self.intrinsics.undistort_points(tr.hist_uv[rows, prev].astype(float))
+        n, d = floor_plane(T0, self.floor_z)
+        N = len(rows)
+        valid, X, _, C = floor_points(bearings_odom(np.broadcast_to(R_oc, (N, 3, 3)), xy0),
+                                      np.broadcast_to(c_o, (N, 3)), np.broadcast_to(n, (N, 3)),
+                                      np.full(N, d), self.landmarks.sigma_n)
+        if valid.sum() < road_plane.MIN_POINTS:
+            return 0
+        xy1 = self.intrinsics.undistort_points(tr.pts[rows[valid]].astype(float))
+        fit = road_plane.fit_road(xy0[valid], xy1, R_oc.T @ -n, float(n @ c_o - d),
+                                  2.5 * self.landmarks.sigma_n, self.params.road_min_step)
+        if fit is None:
+            return 0
+        sel = np.flatnonzero(valid)[fit.inliers]
+        has, _ = self.landmarks.rows(tr.ids[rows[sel]])
+        sel = sel[~has]
+        self.landmarks.place(tr.ids[rows[sel]], X[sel], C[sel])
+        return len(sel)
 
     def _stereo_landmarks(self, stamp_ns, T, gray_b):
         """Tracks seen in this frame without a landmark: matched into the partner's image

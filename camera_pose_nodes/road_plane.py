@@ -1,0 +1,63 @@
+"""Road points between two frames: the tracks that move as the plane under the camera does.
+
+Why: a car moves a metre and more between frames, so a road point is seen in few frames and
+the fused poses, which give triangulation its scale, do not move at all until something
+metric measures them (no wheel, no stereo). The road itself is metric: the camera's height
+above it is known (the rig's floor_z), so a road point is fixed by its ray from one view.
+Which tracks are on the road is what this module decides, from the tracks' motion between
+the previous frame and this one: points on one plane move by one homography,
+H = R + t n^T / h (camera 0 -> 1, n the plane's normal in camera 0, h its distance), points
+above it (cars, kerbs, walls) do not. OpenCV's RANSAC homography finds them, its
+decomposition gives the plane's normal and the step t / h: a solution whose normal agrees
+with the floor the rig knows, and whose step is long enough for height differences to show,
+makes its inliers road points. The quarter places them on the floor from the previous frame's
+fused pose (ground_plane.floor_points), and its EKF measures this frame against them: a
+metric step from one pair of frames, whatever moved the fused poses before.
+"""
+from dataclasses import dataclass
+from typing import Optional
+
+import cv2
+import numpy as np
+
+MIN_POINTS = 8                    # a homography from fewer is not worth trusting
+NORMAL_AGREEMENT_COS = np.cos(np.radians(12.0))   # decomposed normal against the rig's floor
+
+
+@dataclass
+class RoadFit:
+    inliers: np.ndarray        # (N,) bool: the tracks that move as the road does
+    step_m: np.ndarray         # (3,) camera 0 -> 1 translation in camera 1's frame (m)
+    normal: np.ndarray         # (3,) the plane's normal in camera 0 (towards the road)
+
+
+def fit_road(xy0: np.ndarray, xy1: np.ndarray, down_c: np.ndarray, height_m: float,
+             threshold: float, min_step_m: float, min_points: int = MIN_POINTS) -> Optional[RoadFit]:
+    """xy0, xy1 (N, 2): normalised undistorted points of the same tracks in frames 0 and 1;
+    down_c (3,): the floor's normal in camera 0 pointing down (towards the floor); height_m:
+    the camera's height above it; threshold: RANSAC reprojection error (normalised units);
+    min_step_m: shorter steps are not used (their plane parallax is within the noise).
+    Returns None when no plane fit agrees with the floor."""
+    if len(xy0) < min_points:
+        return None
+    H, mask = cv2.findHomography(xy0.astype(np.float64), xy1.astype(np.float64), cv2.RANSAC,
+                                 ransacReprojThreshold=float(threshold), maxIters=500,
+                                 confidence=0.995)
+    if H is None or mask is None:
+        return None
+    inliers = mask.ravel().astype(bool)
+    if inliers.sum() < min_points:
+        return None
+    n_sol, Rs, ts, ns = cv2.decomposeHomographyMat(H, np.eye(3))
+    best, best_cos = None, NORMAL_AGREEMENT_COS
+    for R, t, n in zip(Rs, ts, ns):
+        c = float(n.ravel() @ down_c)
+        if c > best_cos:
+            best, best_cos = (R, t.ravel(), n.ravel()), c
+    if best is None:
+        return None
+    _, t, n = best
+    step = t * height_m
+    if not np.all(np.isfinite(step)) or np.linalg.norm(step) < min_step_m:
+        return None
+    return RoadFit(inliers, step, n)
