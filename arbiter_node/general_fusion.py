@@ -59,7 +59,7 @@ PARAMETERS = {
     'scale_direction_sigma_rad': (0.01, 'angular std of a camera translation direction fed to the rig-scale observer (rad)', 1e-5, 0.5),
     'scale_min_rotation_rad': (0.02, 'rig-scale observer: below this body rotation scale is unobservable (rad)', 1e-4, 1.0),
     'scale_max_relative_std': (0.1, 'rig-scale observer: trust t only when its predicted relative error is below this', 1e-3, 1.0),
-    'stereo_start_speed_std': (20.0, 'rig with a stereo pair (stereo_pairs) and no wheel yet: linear velocity std at the first camera fix (m/s); such a rig measures metric motion from the first frame and may start at speed (a car), where the at-rest start gated out every later frame', 1e-3, 1000.0),
+    'start_speed_std': (20.0, 'rig with a metric source of its own (stereo pair or floor) and no wheel yet: linear velocity std at the first camera fix (m/s); such a rig measures metric motion from the first frames and may start at speed (a car), where the at-rest start gated out every later frame', 1e-3, 1000.0),
     'start_min_cameras': (2, 'without stereo, floor or wheel: the first fix needs this many cameras that agree (two-view initialisation)', 1, 64),
     'start_from_tracks': (True, 'without stereo, floor or wheel: on frames without a camera fix, the rig\'s motion between the two previous frames fitted to the quarters\' tracks (rig_motion_fit) is a twist measurement whenever it is metric (a turn or a spin in place: the lever arms), so /odom turns with a rig that spins before it drives', None, None),
     'start_max_translation_std_m': (0.02, '... when the fitted translation\'s std is below this (m)', 1e-4, 1.0),
@@ -243,8 +243,8 @@ class GeneralFusion:
             if not self.has_tracked:
                 # first fix: the cameras define the pose (odom origin was the start)
                 twist_cov = None
-                if getattr(self.rig, 'stereo_pairs', ()) and not self.wheel_seen and wheel_twist is None:
-                    twist_cov = np.diag([p['stereo_start_speed_std'] ** 2] * 3
+                if getattr(self.rig, 'metric_source', None) is not None and not self.wheel_seen and wheel_twist is None:
+                    twist_cov = np.diag([p['start_speed_std'] ** 2] * 3
                                         + [p['initial_twist_std'] ** 2] * 3)
                 self.ekf.reinitialize(T_f, cov_f, twist_cov=twist_cov)
                 camera_update, d2 = True, 0.0

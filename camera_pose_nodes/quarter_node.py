@@ -97,6 +97,7 @@ class QuarterNode(Node):
         self.held_fused = None          # (since, fused msg) waiting for the partner image
         self.partner_timeout_s = p['partner_timeout_s']
         self.floor_z = rig.floor_z
+        self.road = not rig.floor_level
         self.quarter = int(p['quarter'])
         self.source = f'{self.camera.name}/q{self.quarter}'
         self.feedback_timeout_s = p['feedback_timeout_s']
@@ -165,7 +166,7 @@ class QuarterNode(Node):
                 self.publish_diag(None, 'error', f'bad CameraInfo: {e}')
             return
         self.estimator = QuarterEstimator(self.camera, self.quarter, self.intrinsics, self.params,
-                                          (msg.width, msg.height), self.floor_z)
+                                          (msg.width, msg.height), self.floor_z, self.road)
         for command in self.scale_commands:
             self.estimator.rescale_command(command)
         self.connect_partner()
@@ -497,7 +498,7 @@ class QuarterNode(Node):
     def set_state(self, s):
         self.intrinsics = s['intrinsics']
         self.estimator = QuarterEstimator(self.camera, self.quarter, self.intrinsics, self.params,
-                                          tuple(s['image_size']), self.floor_z)
+                                          tuple(s['image_size']), self.floor_z, self.road)
         self.estimator.set_state(s['estimator'])
         if s.get('partner_intrinsics') is not None and self.partner is not None:
             self.partner_intrinsics = s['partner_intrinsics']

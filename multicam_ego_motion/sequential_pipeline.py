@@ -150,7 +150,8 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             if cam.name not in estimators:
                 intr = intrinsics_from_msg(msg, cam.name)
                 intrinsics[cam.name] = intr
-                estimators[cam.name] = [QuarterEstimator(cam, q, intr, qp, (msg.width, msg.height), rig.floor_z)
+                estimators[cam.name] = [QuarterEstimator(cam, q, intr, qp, (msg.width, msg.height), rig.floor_z,
+                                                                not rig.floor_level)
                                         for q in quarters]
             continue
         cam = by_topic[topic]

@@ -1,4 +1,5 @@
-"""Scenario bags a suite describes by `generate:`, rendered once into a cache folder.
+"""Bags a suite describes by `generate:` (a scenario) or `import_kitti:` (a KITTI sequence),
+made once into a cache folder.
 
 A cached bag's folder name says its settings and ends with a fingerprint of the renderer's
 and bag writer's source, so a change to either renders the bag anew instead of reusing a
@@ -48,6 +49,27 @@ class GenerateSpec:
         return f'{name}_{renderer_fingerprint()}'
 
 
+@dataclass(frozen=True)
+class KittiSpec:
+    """A KITTI sequence folder imported as `ego-motion import-kitti` does (kitti_import)."""
+    folder: Path
+    every: int = 1
+    no_stereo: bool = False
+    halves: bool = False
+
+    def describe(self) -> str:
+        opts = [f'every {self.every}'] * (self.every > 1) + ['no stereo'] * self.no_stereo \
+            + ['halves'] * self.halves
+        return f'KITTI {self.folder}' + (f' ({", ".join(opts)})' if opts else '')
+
+    def folder_name(self) -> str:
+        name = f'kitti_{self.folder.name}_every{self.every}' + '_nostereo' * self.no_stereo \
+            + '_halves' * self.halves
+        key = hashlib.sha256(str(self.folder.resolve()).encode()
+                             + (PACKAGE / 'kitti_import.py').read_bytes()).hexdigest()[:6]
+        return f'{name}_{key}{renderer_fingerprint()}'
+
+
 def default_cache() -> Path:
     base = os.environ.get('XDG_CACHE_HOME') or Path.home() / '.cache'
     return Path(base) / 'multicam_ego_motion' / 'bags'
@@ -71,7 +93,7 @@ def renderer_fingerprint() -> str:
     return _fingerprint
 
 
-def cached_bag(cache: Path, spec: GenerateSpec) -> Path:
+def cached_bag(cache: Path, spec) -> Path:
     return Path(cache) / spec.folder_name()
 
 
@@ -79,17 +101,22 @@ def is_complete(bag: Path) -> bool:
     return (bag / 'metadata.yaml').exists()
 
 
-def ensure_generated(cache: Path, spec: GenerateSpec) -> Path:
-    """The cached bag of `spec`, rendered first when missing."""
-    from multicam_ego_motion.scenarios.generator import generate
+def ensure_generated(cache: Path, spec) -> Path:
+    """The cached bag of `spec` (GenerateSpec or KittiSpec), made first when missing."""
     bag = cached_bag(cache, spec)
     if is_complete(bag):
         return bag
     bag.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f'.{bag.name}.', dir=bag.parent))
     try:
-        generate(spec.scenario, str(tmp / 'bag'), spec.seed, spec.duration, spec.rate, spec.width,
-                 spec.height, spec.fx, spec.k1, spec.cameras, None, 'zstd', progress=False)
+        if isinstance(spec, KittiSpec):
+            from multicam_ego_motion.kitti_import import import_kitti
+            import_kitti(spec.folder, tmp / 'bag', progress=False, every=spec.every,
+                         stereo=not spec.no_stereo, halves=spec.halves)
+        else:
+            from multicam_ego_motion.scenarios.generator import generate
+            generate(spec.scenario, str(tmp / 'bag'), spec.seed, spec.duration, spec.rate, spec.width,
+                     spec.height, spec.fx, spec.k1, spec.cameras, None, 'zstd', progress=False)
         try:
             os.rename(tmp / 'bag', bag)
         except OSError:

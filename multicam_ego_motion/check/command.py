@@ -79,10 +79,11 @@ def prepare(entry: BagEntry, suite, cache: Path, label: str) -> PreparedBag:
     from multicam_ego_motion.replay import check_camera_topic_types, resolve_rig
     from multicam_ego_motion.ros_plumbing.package_share import default_params
     try:
-        if entry.generate is not None:
-            if not is_complete(cached_bag(cache, entry.generate)):
-                print(f'check: {label}: generating {entry.generate.describe()} into {cache}', flush=True)
-            bag = ensure_generated(cache, entry.generate)
+        spec = entry.generate or entry.import_kitti
+        if spec is not None:
+            if not is_complete(cached_bag(cache, spec)):
+                print(f'check: {label}: making {spec.describe()} into {cache}', flush=True)
+            bag = ensure_generated(cache, spec)
         else:
             bag = entry.bag
         reader = Rosbag2Reader(bag)

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
 
-from multicam_ego_motion.check.bags import GenerateSpec
+from multicam_ego_motion.check.bags import GenerateSpec, KittiSpec
 from multicam_ego_motion.check.figures import FIGURES
 from multicam_ego_motion.errors import UserError
 
@@ -34,7 +34,9 @@ SUITE_KEYS = ('bags', 'defaults', 'baseline')
 # keys `defaults:` may give every bag
 SHARED_KEYS = ('rig', 'params', 'workers', 'no_wheel', 'duration', 'limits',
                'baseline_tolerance_pct', 'ground_truth_topic')
-BAG_KEYS = ('name', 'bag', 'generate') + SHARED_KEYS
+BAG_KEYS = ('name', 'bag', 'generate', 'import_kitti') + SHARED_KEYS
+SOURCES = ('bag', 'generate', 'import_kitti')     # exactly one per entry
+IMPORT_KITTI_KEYS = {'folder': str, 'every': int, 'no_stereo': bool, 'halves': bool}
 GENERATE_KEYS = {'scenario': str, 'seed': int, 'duration': float, 'rate': float, 'width': int,
                  'height': int, 'fx': float, 'k1': float, 'cameras': int}
 NAME_PATTERN = re.compile(r'^[A-Za-z0-9][A-Za-z0-9_.-]*$')
@@ -43,8 +45,9 @@ NAME_PATTERN = re.compile(r'^[A-Za-z0-9][A-Za-z0-9_.-]*$')
 @dataclass
 class BagEntry:
     name: str
-    bag: Optional[Path]                    # None: generated (see `generate`)
+    bag: Optional[Path]                    # None: generated (see `generate`) or imported
     generate: Optional[GenerateSpec]
+    import_kitti: Optional[KittiSpec] = None
     rig: Optional[Path] = None
     params: Optional[Path] = None
     workers: int = DEFAULT_WORKERS
@@ -149,6 +152,19 @@ def _generate(where, value) -> GenerateSpec:
     return spec
 
 
+def _import_kitti(where, value, base: Path) -> KittiSpec:
+    spec = _mapping(where, 'import_kitti', value)
+    _unknown_keys(where, 'import_kitti.', spec, tuple(IMPORT_KITTI_KEYS))
+    if 'folder' not in spec:
+        raise where.error('import_kitti', 'needs a folder (a KITTI sequence)')
+    folder = _file(where, 'import_kitti.folder', spec['folder'], base)
+    for k in ('no_stereo', 'halves'):
+        if not isinstance(spec.get(k, False), bool):
+            raise where.error(f'import_kitti.{k}', f'expected true or false, got {spec[k]!r}')
+    every = _number(where, 'import_kitti.every', spec.get('every', 1), 1, 100, integer=True)
+    return KittiSpec(folder, every, spec.get('no_stereo', False), spec.get('halves', False))
+
+
 def _shared(where, raw: dict, base: Path) -> dict:
     """The SHARED_KEYS of a bag entry or of `defaults:`, checked and converted."""
     out = {}
@@ -187,13 +203,16 @@ def _entry(path: Path, index: int, raw, defaults: dict) -> BagEntry:
     where = _Where(path, label)
     raw = _mapping(where, None, raw)
     _unknown_keys(where, '', raw, BAG_KEYS)
-    if ('bag' in raw) == ('generate' in raw):
-        raise where.error(None, 'give either bag (a bag folder) or generate (a scenario), not '
-                                + ('both' if 'bag' in raw else 'neither'))
+    given = [k for k in SOURCES if k in raw]
+    if len(given) != 1:
+        raise where.error(None, 'give one of bag (a bag folder), generate (a scenario) or '
+                                'import_kitti (a KITTI sequence), not '
+                                + (' and '.join(given) if given else 'none'))
     bag = _file(where, 'bag', raw['bag'], base) if 'bag' in raw else None
     if bag is not None and not bag.is_dir():
         raise where.error('bag', f'{bag} is not a bag folder')
     spec = _generate(where, raw['generate']) if 'generate' in raw else None
+    kitti = _import_kitti(where, raw['import_kitti'], base) if 'import_kitti' in raw else None
     own = _shared(where, raw, base)
     values = {**defaults, **own}
     own_limits = own.get('limits', {})
@@ -201,11 +220,11 @@ def _entry(path: Path, index: int, raw, defaults: dict) -> BagEntry:
                                          if k not in own_limits}}
     name = raw.get('name')
     if name is None:
-        name = bag.name if bag is not None else spec.scenario
+        name = bag.name if bag is not None else spec.scenario if spec is not None else kitti.folder.name
     if not isinstance(name, str) or not NAME_PATTERN.match(name):
         raise where.error('name', f'{name!r}: use letters, digits, ".", "_" and "-" '
                                   '(it names the output folder and the test cases)')
-    entry = BagEntry(name=name, bag=bag, generate=spec, **values)
+    entry = BagEntry(name=name, bag=bag, generate=spec, import_kitti=kitti, **values)
     if not entry.limits and not entry.uses_baseline:
         raise where.error(None, 'nothing to check: give limits or baseline_tolerance_pct')
     return entry
