@@ -120,6 +120,14 @@ def median_filter(estimates: Dict[str, PoseEstimate],
             and se3.is_valid_covariance(prior[1]):
         poses.append(prior[0])
         covs.append(prior[1])
+        # The bounds are about the cameras' spread, not the prior's own uncertainty: a car
+        # at speed whose velocity is not known yet (no wheel) moves farther from its
+        # prediction than max_translation_m, and was rejected against a prior it was right
+        # to disagree with (KITTI at 5 m/s: every camera pose for 5 frames).
+        sd = np.sqrt(np.clip(np.linalg.eigvalsh(np.asarray(prior[1], float)[:3, :3]), 0.0, None))
+        sr = np.sqrt(np.clip(np.linalg.eigvalsh(np.asarray(prior[1], float)[3:, 3:]), 0.0, None))
+        max_translation_m += 3.0 * float(sd.max())
+        max_rotation_rad += 3.0 * float(sr.max())
     res.T_median = median_pose(poses, covariances=covs if weighted else None)
     for name, e in cand.items():
         err = se3.pose_error(e.T_odom_base, res.T_median)

@@ -74,6 +74,11 @@ PARAMETERS = {
     'scale_snap_relative_std': (0.1, 'scale_state: the map is rescaled once the scale\'s relative std is below this', 1e-4, 1.0),
     'scale_snap_min_change': (0.01, 'scale_state: after the first rescale, rescale again when the scale moved this much (relative)', 0.0, 1.0),
     'scale_drift_per_sqrt_s': (0.01, 'scale_state: relative scale drift of a map without a scale source per sqrt(s) (the scale estimate\'s random walk)', 0.0, 1.0),
+    'road_scale': (True, "over a road (the rig's floor_level false, no stereo pair): measure the map scale from each camera's road points between frames (their plane's homography, metric from the camera height whatever its pitch: road_plane) and rescale the map (scale_state)", None, None),
+    'road_scale_prior_std': (0.1, 'road_scale: the map scale\'s relative std at the start (the road points of one frame are metric to about the camera\'s pitch to the road)', 1e-3, 10.0),
+    'road_scale_std': (0.3, 'road_scale: relative std of one observation (one camera, two frames; single fits scatter by about this)', 1e-3, 10.0),
+    'road_scale_threshold': (2.5, 'road_scale: RANSAC threshold of the road homography, in point stds', 0.5, 20.0),
+    'road_scale_min_step_m': (0.1, 'road_scale: shorter camera steps observe nothing (points above the road move as it does)', 1e-3, 10.0),
     'scale_snap_about': ('origin', 'scale_state: rescale the map about the odom origin (`origin`: past and future odometry at one scale, a jump now) or the current pose (`current`: no jump, a kink)', None, None),
 }
 
@@ -325,7 +330,8 @@ class GeneralFusion:
         Nothing here touches the estimate while stereo, floor or wheel fix the scale."""
         self.wheel_seen = self.wheel_seen or wheel_used
         other = metric_source(self.rig, self.wheel_seen)
-        if other is not None:
+        road = self.rig.road_scale and self.params['road_scale'] and not self.wheel_seen
+        if other is not None and not road:
             return other, 0.0, None
         sc = self.scale
         c = sc.pending
@@ -335,10 +341,10 @@ class GeneralFusion:
                 T = T.copy()
                 T[:3, 3] = scale_positions(T[:3, 3], c.factor, c.centre)
                 camera_poses[n] = T
-        if camera_update and self.params['rig_rotation_scale']:
+        if camera_update and (self.params['rig_rotation_scale'] or road):
             sc.observe(stamp_ns, self.ekf.T, camera_poses, camera_stamps)
             sc.decide(stamp_ns, self.ekf.T)
-        fixed_by = 'rig rotation' if sc.observed else 'none'
+        fixed_by = ('road' if road else 'rig rotation') if sc.observed else ('floor' if road else 'none')
         return fixed_by, sc.relative_std, sc.odom_covariance(self.ekf.T, self.ekf.pose_covariance)
 
     def _twist_from_tracks(self) -> bool:
@@ -377,6 +383,8 @@ class GeneralFusion:
     def wants_bearings(self) -> bool:
         """Whether the quarters' tracks can tell this fusion anything: the scale is measured
         from them only without stereo and floor (and wheel, once one is seen)."""
+        if self.rig.road_scale:
+            return bool(self.params['road_scale'])
         return bool(self.params['rig_rotation_scale'] and self.params['scale_from_tracks']
                     and metric_source(self.rig, False) is None)
 

@@ -35,11 +35,28 @@ import numpy as np
 
 from arbiter_node.rig_motion_fit import CameraTracks, fit_rig_motion
 from arbiter_node.rig_scale import relative_motion, scale_correction, solve_rig_translation
+from camera_pose_nodes.road_plane import camera_step, fit_road
 from camera_pose_nodes.map_scale import MapScaleCommand, rescale_filter, scale_positions
 from multicam_ego_motion.geometry import se3
 
-SOURCES = ('none', 'rig rotation', 'floor', 'wheel', 'stereo')
-BEARING_STAMPS_KEPT = 12      # per camera: a pair spans at most scale_pair_max_frames + 1
+SOURCES = ('none', 'rig rotation', 'road', 'floor', 'wheel', 'stereo')
+ROAD_MIN_DEPRESSION_RAD = np.radians(3.0)   # tracks nearer the horizon meet the road too far
+ROAD_AHEAD_M = 20.0          # the road region: where the floor is nearer than this ...
+ROAD_HALF_WIDTH_M = 3.0      # ... and within this of the camera sideways (the lane)
+BEARING_STAMPS_KEPT = 12
+
+
+def road_region(xy: np.ndarray, down_c: np.ndarray, R_base_cam: np.ndarray, height: float) -> np.ndarray:
+    """Which normalised points (N, 2) look at the road ahead: their ray meets the rig's floor
+    within ROAD_AHEAD_M and ROAD_HALF_WIDTH_M sideways. Why a region: the lower half of a
+    street image holds parked cars and house fronts, planes of their own, and a homography
+    fit to all of it found those (KITTI 07: steps half their length); the lane ahead is road."""
+    rays = np.column_stack([xy, np.ones(len(xy))])
+    s = rays @ down_c / np.linalg.norm(rays, axis=1)
+    ok = s >= np.sin(ROAD_MIN_DEPRESSION_RAD)
+    lam = np.where(ok, height / np.where(ok, rays @ down_c, 1.0), np.inf)
+    X_body = (rays * lam[:, None]) @ R_base_cam.T          # from the camera, in base_link axes
+    return ok & (X_body[:, 0] <= ROAD_AHEAD_M) & (np.abs(X_body[:, 1]) <= ROAD_HALF_WIDTH_M)      # per camera: a pair spans at most scale_pair_max_frames + 1
 
 
 def metric_source(rig, wheel_seen: bool) -> Optional[str]:
@@ -71,6 +88,10 @@ class ScaleState:
         self.pair_end = None                           # stamp: track pairs do not overlap
         self.last_fit = None                           # rig_motion_fit.RigMotionFit, diagnostics
         self.n_observations = 0                        # scale observations fused (diagnostics)
+        self.n_road_fits = 0                           # of them from the road (diagnostics)
+        if rig.road_scale:
+            # the road's points are metric from the first frame, to about the camera's pitch
+            self.P = float(params['road_scale_prior_std']) ** 2
 
     def add_bearings(self, camera: str, quarter: int, stamp_ns: int, ids, xy, sigma):
         """One quarter's tracks at one of its frames (normalised points, their std)."""
@@ -121,6 +142,9 @@ class ScaleState:
         max_ns = p['scale_window_max_s'] * 1e9
         while len(self.history) > p['scale_pair_max_frames'] + 2 and stamp_ns - self.history[0][0] > max_ns:
             self.history.popleft()
+        if self.rig.road_scale:
+            self._observe_road()
+            return
         if p['scale_from_tracks'] and self.bearings:
             self._observe_tracks()
             return
@@ -162,15 +186,18 @@ class ScaleState:
         self.n_observations += 1
 
     def tracks_between(self, stamps_a: Dict[str, int], stamps_b: Dict[str, int], frame_a: int,
-                       frame_b: int) -> List[CameraTracks]:
+                       frame_b: int, by_camera: bool = False) -> List[CameraTracks]:
         """Every camera's tracks seen at both frames (each camera at its own stamp in the
-        frame, else the frame's), quarter by quarter matched by track id."""
+        frame, else the frame's), quarter by quarter matched by track id. by_camera: one
+        entry per rig camera, None for those without."""
         cams = []
         for cam in self.rig.cameras:
             per = self.bearings.get(cam.name, {})
             qa = per.get(stamps_a.get(cam.name, frame_a))
             qb = per.get(stamps_b.get(cam.name, frame_b))
             if not qa or not qb:
+                if by_camera:
+                    cams.append(None)
                 continue
             xa, xb, sg = [], [], []
             for q in sorted(set(qa) & set(qb)):
@@ -183,6 +210,8 @@ class ScaleState:
             if xa:
                 cams.append(CameraTracks(cam.rotation, cam.translation, np.concatenate(xa),
                                          np.concatenate(xb), np.concatenate(sg)))
+            elif by_camera:
+                cams.append(None)
         return cams
 
     def _observe_tracks(self):
@@ -222,6 +251,38 @@ class ScaleState:
             # One std for every pair, not the fit's prediction: weighted by that, the scale
             # read 2-3 % low (the prediction is smaller where |t| came out short).
             self._update(k, p['scale_pair_std'])
+
+    def _observe_road(self):
+        """Over a road: each camera's step between the two previous frames from its tracks
+        below the horizon (road_plane.fit_road: the plane's homography, metric from the
+        camera's height, whatever its pitch to the road) against the fused step: one
+        observation of the scale per camera and frame pair."""
+        p = self.p
+        hist = list(self.history)
+        if len(hist) < 3:
+            return
+        a, b = hist[-3], hist[-2]
+        if self.pair_end is not None and b[0] <= self.pair_end:
+            return
+        self.pair_end = b[0]
+        for cam, tracks in zip(self.rig.cameras, self.tracks_between(a[3], b[3], a[0], b[0], by_camera=True)):
+            if tracks is None:
+                continue
+            down_c = cam.rotation.T @ np.array([0.0, 0.0, -1.0])
+            height = float(cam.translation[2] - self.rig.floor_z)
+            below = road_region(tracks.xa, down_c, cam.rotation, height)
+            fit = fit_road(tracks.xa[below], tracks.xb[below], down_c, height,
+                           p['road_scale_threshold'] * float(np.median(tracks.sigma)), p['road_scale_min_step_m'])
+            if fit is None:
+                continue
+            T_a, T_b = a[1] @ cam.T_base_cam, b[1] @ cam.T_base_cam
+            t_map = T_a[:3, :3].T @ (T_b[:3, 3] - T_a[:3, 3])            # in camera a
+            t_metric = camera_step(fit)
+            nn = float(t_map @ t_map)
+            k = float(t_map @ t_metric) / nn if nn > 1e-12 else 0.0
+            if k > 0 and np.isfinite(k):
+                self.n_road_fits += 1
+                self._update(k, p['road_scale_std'])
 
     def fit_summary(self) -> str:
         """The last rig-motion fit to the quarters' tracks, for /diagnostics: what it used,

@@ -155,8 +155,9 @@ class KLTTracker:
         changing the tracker: a quarter computes it while it still waits for the previous
         frame's fused pose (pipelining), and track() applies it to the tracks that are left.
         `predict`: a pair of functions (forward, backward) mapping full-image pixels (N, 2)
-        to where they should be in the new / previous crop (the camera's rotation): the
-        search starts there instead of at zero flow (see quarter_estimator)."""
+        of the tracks `rows` (indices into this tracker's tracks) to where they should be in
+        the new / previous image (flow_prediction): the search starts there instead of at
+        zero flow."""
         if self.prev_crop is None or not len(self.ids):
             return None
         # OpenCV 5's Python binding no longer accepts prebuilt pyramids here, so each call
@@ -170,14 +171,14 @@ class KLTTracker:
 
         fwd, bwd = predict if predict is not None else (None, None)
 
-        def search(img0, img1, pts, fn):
+        def search(img0, img1, pts, fn, rows):
             """LK of `pts` from img0 into img1, starting where `fn` predicts them (motions it
             predicts under MIN_PREDICTED_PX, and non-finite ones, start at zero flow)."""
             if fn is None:
                 return cv2.calcOpticalFlowPyrLK(img0, img1, pts, None, winSize=(w, w),
                                                 maxLevel=lv, criteria=crit)
             p = pts.reshape(-1, 2)
-            g = fn(p + off) - off
+            g = fn(p + off, rows) - off
             zero = ~np.all(np.isfinite(g), axis=1) | (np.abs(g - p).max(axis=1) < MIN_PREDICTED_PX)
             g[zero] = p[zero]
             return cv2.calcOpticalFlowPyrLK(img0, img1, pts, g.reshape(-1, 1, 2).astype(np.float32),
@@ -186,7 +187,7 @@ class KLTTracker:
 
         def lk(chunk):
             a = p0[chunk]
-            b, st1, _ = search(prev, crop, a, fwd)
+            b, st1, _ = search(prev, crop, a, fwd, chunk)
             new = b.reshape(-1, 2) + off
             # Only tracks that can still be kept are checked backwards (a quarter of them
             # were lost or left the quarter; each point is tracked on its own, so leaving
@@ -196,7 +197,7 @@ class KLTTracker:
             if ok.any():
                 # Backwards from the new position's own prediction, never from the start
                 # point: a search that starts at the answer would pass a wrong track.
-                back, st2, _ = search(crop, prev, b[ok], bwd)
+                back, st2, _ = search(crop, prev, b[ok], bwd, chunk[ok])
                 fb = np.linalg.norm((back - a[ok]).reshape(-1, 2), axis=1)
                 ok[ok] = (st2.ravel() == 1) & (fb < self.cfg.fb_threshold_px)
             return new, ok
@@ -239,28 +240,45 @@ class KLTTracker:
     def extract(self, stamp_ns: int) -> int:
         """Top the quarter up with Shi-Tomasi corners, one grid cell at a time, away from
         existing tracks. Returns the number of new features."""
+        reg = self.region
+        return self._extract(stamp_ns, reg.y0, self.cfg.grid_rows, self.cfg.max_features)
+
+    def count_below(self, row: int) -> int:
+        """Tracks in the image rows from `row` down."""
+        return int((self.pts[:, 1] >= row).sum())
+
+    def extract_below(self, stamp_ns: int, row: int, count: int) -> int:
+        """Top the quarter's rows from `row` down up to `count` features (one row of cells):
+        the road below the horizon, whose points give the metric steps (road_plane) but
+        whose weak texture loses to the scene's corners in extract()."""
+        reg = self.region
+        if row >= reg.y1 - 2:
+            return 0
+        return self._extract(stamp_ns, max(int(row), reg.y0), 1, count)
+
+    def _extract(self, stamp_ns: int, y_top: int, grid_rows: int, max_features: int) -> int:
         crop = self._cur_crop
         if crop is None:
             return 0
         cfg, reg = self.cfg, self.region
         ox, oy = reg.cx0, reg.cy0
-        n_cells = cfg.grid_rows * cfg.grid_cols
-        cap = math.ceil(cfg.max_features / n_cells)
+        n_cells = grid_rows * cfg.grid_cols
+        cap = math.ceil(max_features / n_cells)
         xs = np.linspace(reg.x0, reg.x1, cfg.grid_cols + 1).round().astype(int)
-        ys = np.linspace(reg.y0, reg.y1, cfg.grid_rows + 1).round().astype(int)
+        ys = np.linspace(y_top, reg.y1, grid_rows + 1).round().astype(int)
         half = int(math.ceil(cfg.min_distance_px / 2))
         pad = cfg.block_size
         existing = self.pts
 
         cells = []
-        for r in range(cfg.grid_rows):
+        for r in range(grid_rows):
             for c in range(cfg.grid_cols):
                 # Interior cell borders are shrunk by half the min distance so that corners
                 # of neighbouring cells keep the spacing a single call would enforce.
                 x0 = xs[c] + (half if c > 0 else 0)
                 x1 = xs[c + 1] - (half if c < cfg.grid_cols - 1 else 0)
                 y0 = ys[r] + (half if r > 0 else 0)
-                y1 = ys[r + 1] - (half if r < cfg.grid_rows - 1 else 0)
+                y1 = ys[r + 1] - (half if r < grid_rows - 1 else 0)
                 inside = ((existing[:, 0] >= xs[c]) & (existing[:, 0] < xs[c + 1])
                           & (existing[:, 1] >= ys[r]) & (existing[:, 1] < ys[r + 1]))
                 want = cap - int(inside.sum())

@@ -26,7 +26,7 @@ from camera_pose_nodes.pose_ekf import PoseEKF
 from camera_pose_nodes.pose_estimate import PoseEstimate, UNINFORMATIVE_VARIANCE, uninformative
 from camera_pose_nodes.quarter_region import QuarterRegion
 from camera_pose_nodes.stereo_match import StereoConfig, StereoPair, relative_pose
-from camera_pose_nodes import map_scale, road_plane
+from camera_pose_nodes import flow_prediction, map_scale, road_plane
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.geometry.rig import CameraMount
 from multicam_ego_motion.geometry.se3 import R_to_rotvec, rotvec_to_R
@@ -34,12 +34,15 @@ from multicam_ego_motion.geometry.se3 import R_to_rotvec, rotvec_to_R
 # Fused poses come back at the stamps a quarter tracked, within a feedback timeout or so.
 OWN_STAMPS_KEPT = 32
 
-STATE_VERSION = 9     # 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays; 6: motion; 7: stereo partner; 8: map scale; 9: own stamps
+STATE_VERSION = 10    # 10: motion with translation; 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays; 6: motion; 7: stereo partner; 8: map scale; 9: own stamps
 STAGES = ('acquire', 'extract', 'track', 'pose', 'structure')
 _ROTATION_ONLY_POSITION_VARIANCE = 1.0e2   # m^2: 'position not measured', still < UNINFORMATIVE
 _TRIANGULATION_VIEWS = 5     # views per DLT: oldest, newest and evenly spaced between
 _PREDICT_MAX_RATE_STD = 0.5  # rad/s: a less certain angular rate does not steer the tracker
 _PREDICT_MAX_DT_S = 1.0      # nor does one from longer ago
+_ROAD_MAX_DEPTH_M = 25.0     # the road band: where the floor is nearer than this
+_PREDICT_MIN_SPEED_STD = 0.5          # m/s: a velocity this certain steers the tracker ...
+_PREDICT_MAX_SPEED_REL_STD = 0.5      # ... or one known to half its speed
 
 
 @lru_cache(maxsize=None)
@@ -54,6 +57,17 @@ def _view_tables(max_views: int):
         idx[m] = js
         distinct[m] = [1.0 if v == 0 or js[v] != js[v - 1] else 0.0 for v in range(len(js))]
     return idx, distinct
+
+def feature_scale(image_size, scale_max: float) -> float:
+    """How many times min_features and max_features a quarter of this image keeps: the square
+    root of its area against a 160x120 quarter's, between 1 and scale_max. Why: the counts
+    were set on 320x240 images; a real camera's quarter (KITTI: 613x185) spread 80 corners
+    over six times the area, its road got a handful, and at car speed the few road points
+    that survived a frame could not say which of them lay on the road (road_plane). Twice
+    the features: ATE over 14 real KITTI cases and variants summed 513 -> 330 %."""
+    w, h = image_size
+    return float(np.clip(math.sqrt((w / 2) * (h / 2) / (160.0 * 120.0)), 1.0, scale_max))
+
 
 def _members(a: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
     """np.isin(a, sorted_set) for a sorted set, by binary search (isin sorts both)."""
@@ -74,6 +88,7 @@ TRACK_FLOOR = 3      # a landmark placed on the floor (ground_plane): reprojecti
 PARAMETERS = {
     'min_features': (40, "extract new features when fewer are tracked (paper's Min)", 4, 1000),
     'max_features': (80, 'extraction tops the quarter up to this many features', 8, 4000),
+    'road_feature_scale_max': (2.0, 'min_features and max_features are for a 160x120 quarter (a 320x240 image); on a road (road_landmarks), a larger quarter gets more, by the square root of its area, up to this factor (1: never more)', 1.0, 10.0),
     'klt_window': (21, 'Lucas-Kanade window size in pixels (odd)', 5, 63),
     'pyramid_levels': (3, 'Lucas-Kanade pyramid levels above the full-resolution image', 0, 6),
     'klt_iterations': (30, 'Lucas-Kanade iterations per pyramid level, at most', 1, 100),
@@ -92,6 +107,7 @@ PARAMETERS = {
     'accel_sigma': (2.0, 'process noise: white linear acceleration (m/s^2/sqrt(Hz))', 1e-4, 100.0),
     'alpha_sigma': (2.0, 'process noise: white angular acceleration (rad/s^2/sqrt(Hz))', 1e-4, 100.0),
     'predict_flow': (True, "start each feature's Lucas-Kanade search where the camera's rotation (this quarter's angular rate) moves it, not at zero flow", None, None),
+    'predict_translation_min_speed': (3.0, "from this speed (m/s) on, each feature's search also starts moved by the camera's translation since the last estimate, at its landmark's depth or where its ray meets the floor (flow_prediction): at car speed near points move 100 px a frame", 0.0, 1000.0),
     'epipolar': (True, 'also measure tracks without a landmark by their epipolar line to an earlier fused view', None, None),
     'epipolar_min_baseline': (0.05, 'shortest camera baseline (m) for an epipolar measurement', 0.001, 10.0),
     'min_inliers': (6, 'inliers needed to report tracking (else lost)', 3, 1000),
@@ -102,6 +118,7 @@ PARAMETERS = {
     'max_depth': (200.0, 'farthest accepted landmark depth (m)', 1.0, 1e5),
     'ground_plane': (True, 'put landmarks that lie on the floor onto it: their depth is then metric from the camera height (see ground_plane; needs the rig\'s floor_z)', None, None),
     'road_landmarks': (True, "on a road (the rig's floor_level false), every frame, tracks that moved since the previous frame as the floor does (a plane homography whose normal and height agree with the rig's floor: road_plane) are placed on the floor from the previous fused pose: metric steps at car speed without a wheel or stereo (needs ground_plane)", None, None),
+    'road_features': (60, "features a road quarter keeps in its image below the horizon (the floor within 25 m), extracted beside the others: the road's weak texture loses to the scene's corners (road_landmarks)", 0, 1000),
     'road_min_step': (0.1, 'shortest camera step (m) between two frames at which road_landmarks looks for the floor (shorter: points above it move alike)', 0.001, 10.0),
     'ground_tolerance': (0.3, 'a floor landmark\'s depth is never farther than this fraction from its ray\'s floor intersection', 0.001, 1.0),
     'two_view_init': (True, 'without landmarks, floor or any motion of the fused poses, initialise from two-view geometry on the tracks (essential matrix): rotation and direction of travel, the length from two_view_nominal_speed (see two_view)', None, None),
@@ -166,8 +183,8 @@ class QuarterEstimator:
                  params: Optional[QuarterParams] = None, image_size=None,
                  floor_z: Optional[float] = None, road: bool = False):
         """floor_z: the rig's floor in base_link (Rig.floor_z); None disables floor landmarks.
-        road: the floor is a road, flat only locally (not Rig.floor_level): road_landmarks
-        runs there. Why not on a level indoor floor: at walking speed the steps between two
+        road: the floor is a road, flat only locally, and the rig has no stereo pair
+        (Rig.road_scale): road_landmarks runs there. Why not on a level indoor floor: at walking speed the steps between two
         frames (0.1 to 0.2 m) cannot tell the floor from points a few cm above it, and
         triangulation with the floor check (snap_to_floor) has the time to: the accuracy
         matrix's mean final drift went from 0.32 to 0.43 % with road_landmarks there."""
@@ -181,8 +198,10 @@ class QuarterEstimator:
         w, h = image_size if image_size is not None else (intrinsics.width, intrinsics.height)
         self.image_size = (int(w), int(h))
         p = self.params
+        scale = feature_scale(self.image_size, p.road_feature_scale_max) if self.uses_road else 1.0
         self.klt_cfg = KLTConfig(
-            min_features=p.min_features, max_features=p.max_features, window=p.klt_window,
+            min_features=int(round(p.min_features * scale)), max_features=int(round(p.max_features * scale)),
+            window=p.klt_window,
             pyramid_levels=p.pyramid_levels, iterations=p.klt_iterations,
             epsilon_px=p.klt_epsilon_px, fb_threshold_px=p.fb_threshold_px,
             quality_level=p.quality_level, min_distance_px=p.min_distance_px,
@@ -192,6 +211,7 @@ class QuarterEstimator:
         self.source = f'{camera.name}/q{self.quarter}'
         self.T_base_cam = camera.T_base_cam
         self.tracker = KLTTracker(self.region, self.klt_cfg)
+        self.road_row = self._road_top_row()
         self.ekf = PoseEKF(p.accel_sigma, p.alpha_sigma)
         self.landmarks = LandmarkMap(p.parallax_deg, p.max_reproj_px, p.min_depth, p.max_depth,
                                      p.refine_factor, focal_px=0.5 * (intrinsics.fx + intrinsics.fy),
@@ -307,7 +327,7 @@ class QuarterEstimator:
         # New features are extracted later (extract_pending): they have no landmark and no
         # earlier view, so they take no part in this frame's estimate, and a worker extracts
         # them once the estimate is out, in its idle time (latency).
-        if self.tracker.needs_features():
+        if self.tracker.needs_features() or self._road_needs_features():
             self._extract_due = int(stamp_ns)
         ms['extract'] = self.extract_ms     # ran after the previous estimate
         self.extract_ms = 0.0
@@ -315,7 +335,7 @@ class QuarterEstimator:
 
         stamp_before = self.ekf.stamp_ns
         self.ekf.predict(stamp_ns)
-        if self.uses_road and self.partner is None:     # (a stereo pair is metric already)
+        if self.uses_road:
             self._road_landmarks(stamp_ns)
         has, X = self.landmarks.lookup(self.tracker.ids)
         n_inliers = 0
@@ -433,10 +453,27 @@ class QuarterEstimator:
             self._scale_pending = sorted(self._scale_pending + [command], key=lambda c: c.epoch)
 
     def _remember_motion(self, stamp_ns, state):
-        _, w, cov = self.ekf.twist
+        v, w, cov = self.ekf.twist
         rate_std = math.sqrt(max(float(np.max(np.diag(cov)[3:])), 0.0))
         ok = state == 'tracking' and np.all(np.isfinite(w)) and rate_std < _PREDICT_MAX_RATE_STD
-        self._motion = (int(stamp_ns), w.copy()) if ok and self.params.predict_flow else None
+        self._motion = None
+        if ok and self.params.predict_flow:
+            self._motion = flow_prediction.MotionPrior(int(stamp_ns), w.copy())
+            speed_std = math.sqrt(max(float(np.max(np.diag(cov)[:3])), 0.0))
+            if np.all(np.isfinite(v)) \
+                    and speed_std < max(_PREDICT_MIN_SPEED_STD, _PREDICT_MAX_SPEED_REL_STD * float(np.linalg.norm(v))):
+                self._with_translation(self.ekf.T_odom_base[:3, :3].T @ v)
+        if (self._motion is None and self.params.predict_flow and len(self.fused_poses) >= 2
+                and self.uses_road):
+            # A road quarter that is not tracking (its road points ran out at speed): the
+            # fusion's motion over the last two fused poses, translation included; with
+            # nothing to steer it, the next frame's road points (100 px of flow) were lost too.
+            s0, s1 = sorted(self.fused_poses)[-2:]
+            dt = (s1 - s0) * 1e-9
+            if 0.0 < dt <= _PREDICT_MAX_DT_S:
+                T0, T1 = self.fused_poses[s0], self.fused_poses[s1]
+                self._motion = flow_prediction.MotionPrior(int(stamp_ns), R_to_rotvec(T0[:3, :3].T @ T1[:3, :3]) / dt)
+                self._with_translation(T1[:3, :3].T @ (T1[:3, 3] - T0[:3, 3]) / dt)
         if (self._motion is None and self.params.predict_flow and len(self.fused_poses) >= 2
                 and not self.uses_floor and self.partner is None):
             # Not tracking (no map yet, or lost), nothing metric in this quarter (no floor, no
@@ -450,7 +487,21 @@ class QuarterEstimator:
             if 0.0 < dt <= _PREDICT_MAX_DT_S:
                 w = R_to_rotvec(self.fused_poses[s0][:3, :3].T @ self.fused_poses[s1][:3, :3]) / dt
                 if np.linalg.norm(w) > 1e-6:
-                    self._motion = (int(stamp_ns), w)
+                    self._motion = flow_prediction.MotionPrior(int(stamp_ns), w)
+
+    def _with_translation(self, v_body):
+        """The motion prior moves points too, at predict_translation_min_speed and faster:
+        the body's velocity and the camera-frame points of the landmarks as this estimate has
+        them. Slower, the pyramid's search covers what translation moves a point (and on the
+        accuracy matrix's indoor runs steering by it changed nothing but the noise: the worst
+        run's final drift 0.54 -> 0.62 %)."""
+        if float(np.linalg.norm(v_body)) < self.params.predict_translation_min_speed:
+            return
+        T = self.ekf.T_odom_base @ self.T_base_cam
+        has, X = self.landmarks.lookup(self.tracker.ids)
+        self._motion.v_body = np.asarray(v_body, float)
+        self._motion.ids = self.tracker.ids[has].copy()
+        self._motion.Xc = (X - T[:3, 3]) @ T[:3, :3]
 
     def _flow_predictor(self, stamp_ns):
         """(forward, backward) pixel maps of the camera's rotation from the last estimate to
@@ -461,21 +512,41 @@ class QuarterEstimator:
         translation is left to the search (it moves near points only)."""
         if self._motion is None:
             return None
-        dt = (int(stamp_ns) - self._motion[0]) * 1e-9
+        dt = (int(stamp_ns) - self._motion.stamp_ns) * 1e-9
         if not 0.0 < dt <= _PREDICT_MAX_DT_S:
             return None
+        if self._motion.v_body is not None:
+            return flow_prediction.predictor(self._motion, stamp_ns, self.T_base_cam, self.intrinsics,
+                                             self.tracker.ids, self.floor_z if self.uses_floor else None)
         R_bc = self.T_base_cam[:3, :3]
         # directions in camera 1 -> camera 2: R_bc^T exp(-[w] dt) R_bc (w in the body frame)
-        R21 = R_bc.T @ rotvec_to_R(-self._motion[1] * dt) @ R_bc
+        R21 = R_bc.T @ rotvec_to_R(-self._motion.w_body * dt) @ R_bc
         intr = self.intrinsics
 
         def rotate(R):
-            def apply(px):
+            def apply(px, _rows):
                 d = np.column_stack([intr.undistort_points(px), np.ones(len(px))]) @ R.T
                 z = np.where(d[:, 2] > 1e-6, d[:, 2], np.nan)       # behind: no prediction
                 return intr.project(d[:, :2] / z[:, None])
             return apply
         return rotate(R21), rotate(R21.T)
+
+    def _road_needs_features(self) -> bool:
+        return self.road_row is not None and \
+            self.tracker.count_below(self.road_row) < self.params.road_features // 2
+
+    def _road_top_row(self) -> Optional[int]:
+        """The first image row of this quarter (at its middle column) whose ray meets the
+        floor within ROAD_MAX_DEPTH_M (road_landmarks' extraction band), or None."""
+        if not self.uses_road:
+            return None
+        reg = self.region
+        rows = np.arange(reg.y0, reg.y1, dtype=float)
+        px = np.column_stack([np.full(len(rows), 0.5 * (reg.x0 + reg.x1)), rows])
+        rays = np.column_stack([self.intrinsics.undistort_points(px), np.ones(len(rows))])
+        floor = flow_prediction.floor_points_cam(rays, self.T_base_cam, self.floor_z)
+        near = np.flatnonzero(np.isfinite(floor[:, 2]) & (floor[:, 2] <= _ROAD_MAX_DEPTH_M))
+        return int(rows[near[0]]) if len(near) else None
 
     def extraction_due(self) -> bool:
         return self._extract_due is not None
@@ -487,7 +558,10 @@ class QuarterEstimator:
         if self._extract_due is None:
             return
         t0 = time.thread_time()
-        self.tracker.extract(self._extract_due)
+        if self.tracker.needs_features():
+            self.tracker.extract(self._extract_due)
+        if self._road_needs_features():
+            self.tracker.extract_below(self._extract_due, self.road_row, self.params.road_features)
         self._extract_due = None
         self.extract_ms += (time.thread_time() - t0) * 1e3
 
@@ -797,7 +871,7 @@ class QuarterEstimator:
                 'landmarks': self.landmarks.get_state(),
                 'fused_poses': {k: v.copy() for k, v in self.fused_poses.items()},
                 'structure_ms': self.structure_ms, 'extract_ms': self.extract_ms,
-                'motion': None if self._motion is None else (self._motion[0], self._motion[1].copy()),
+                'motion': None if self._motion is None else self._motion.to_list(),
                 'partner': self.partner, 'own_stamps': list(self.own_stamps),
                 'scale_epoch': self.scale_epoch, 'two_view_ref': self._two_view_ref,
                 'scale_pending': [c.to_list() for c in self._scale_pending]}
@@ -820,7 +894,7 @@ class QuarterEstimator:
         self.structure_ms = float(s['structure_ms'])
         self.extract_ms = float(s['extract_ms'])
         m = s['motion']
-        self._motion = None if m is None else (int(m[0]), np.array(m[1], float))
+        self._motion = None if m is None else flow_prediction.MotionPrior.from_list(m)
         self.stereo, self.partner = None, None
         if s['partner'] is not None:
             self.set_partner(*s['partner'])

@@ -97,7 +97,7 @@ class QuarterNode(Node):
         self.held_fused = None          # (since, fused msg) waiting for the partner image
         self.partner_timeout_s = p['partner_timeout_s']
         self.floor_z = rig.floor_z
-        self.road = not rig.floor_level
+        self.road = rig.road_scale
         self.quarter = int(p['quarter'])
         self.source = f'{self.camera.name}/q{self.quarter}'
         self.feedback_timeout_s = p['feedback_timeout_s']
@@ -130,10 +130,10 @@ class QuarterNode(Node):
         self.pub_tracks = (self.create_publisher(Image, 'tracks', RELIABLE_IMAGES)
                            if p['debug_images'] else None)
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'pose', RELIABLE)
-        # Without floor and stereo the general arbiter measures the scale from every quarter's
-        # tracks (a wheel, when one comes, makes them unused)
+        # Without floor and stereo, and over a road, the general arbiter measures the scale
+        # from every quarter's tracks (a wheel, when one comes, makes them unused)
         self.pub_bearings = (self.create_publisher(PointCloud2, 'bearings', RELIABLE)
-                             if rig.metric_source is None else None)
+                             if rig.sends_bearings else None)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         # topic -> (type, QoS, callback) of the per-frame inputs
         # (the schedule first: an executor takes ready subscriptions in creation order)

@@ -27,7 +27,8 @@ NORMAL_AGREEMENT_COS = np.cos(np.radians(12.0))   # decomposed normal against th
 @dataclass
 class RoadFit:
     inliers: np.ndarray        # (N,) bool: the tracks that move as the road does
-    step_m: np.ndarray         # (3,) camera 0 -> 1 translation in camera 1's frame (m)
+    R: np.ndarray              # (3, 3) camera 0 -> 1 rotation: X1 = R X0 + t
+    step_m: np.ndarray         # (3,) t (m), the translation in camera 1's frame
     normal: np.ndarray         # (3,) the plane's normal in camera 0 (towards the road)
 
 
@@ -56,8 +57,13 @@ def fit_road(xy0: np.ndarray, xy1: np.ndarray, down_c: np.ndarray, height_m: flo
             best, best_cos = (R, t.ravel(), n.ravel()), c
     if best is None:
         return None
-    _, t, n = best
+    R, t, n = best
     step = t * height_m
     if not np.all(np.isfinite(step)) or np.linalg.norm(step) < min_step_m:
         return None
-    return RoadFit(inliers, step, n)
+    return RoadFit(inliers, R, step, n)
+
+
+def camera_step(fit: RoadFit) -> np.ndarray:
+    """Camera 1's centre in camera 0's frame (m)."""
+    return -fit.R.T @ fit.step_m

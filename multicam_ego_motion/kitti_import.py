@@ -278,6 +278,11 @@ def import_kitti(folder, out, rig_out=None, max_frames=None, progress=True, whee
     first = read_mono(left[0])
     h, w = first.shape
     cams = rig_cameras(mono, halves, w, P0[0, 2], baseline)
+    for c in cams:
+        if not 0 <= c.columns[0] < c.columns[1] - 8 <= w - 8:
+            raise UserError(f'--halves: camera {c.name} would be columns {c.columns[0]}-{c.columns[1] - 1} '
+                            f'of a {w}-column image (the principal point, column {P0[0, 2]:.1f}, '
+                            'must leave both halves inside the image)')
     rig = kitti_rig(cams, stereo=stereo and not mono and not halves)
     P = (P0, P1)
     intr = {c.name: CameraIntrinsics(c.columns[1] - c.columns[0], h, P[c.side][0, 0], P[c.side][1, 1],

@@ -53,7 +53,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
                         f'({", ".join(c.image_topic for c in rig.cameras)})')
     qp = QuarterParams(**(quarter_params or {}))
     fusion = GeneralFusion(rig, fusion_params or {})
-    sends_bearings = rig.metric_source is None     # as the quarter nodes
+    sends_bearings = rig.sends_bearings     # as the quarter nodes
     topics = [c.image_topic for c in present] + [c.camera_info_topic for c in present
                                                   if c.camera_info_topic in reader.topics]
     wheel_topic = '/wheel/odom' if use_wheel and '/wheel/odom' in reader.topics else None
@@ -151,7 +151,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
                 intr = intrinsics_from_msg(msg, cam.name)
                 intrinsics[cam.name] = intr
                 estimators[cam.name] = [QuarterEstimator(cam, q, intr, qp, (msg.width, msg.height), rig.floor_z,
-                                                                not rig.floor_level)
+                                                                rig.road_scale)
                                         for q in quarters]
             continue
         cam = by_topic[topic]

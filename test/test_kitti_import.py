@@ -27,14 +27,14 @@ def kitti_folder():
                 ', '.join(str(p) for p in KITTI_CANDIDATES) + ')')
 
 
-def fake_kitti(root: Path, frames=3, calib=CALIB, poses=None):
-    """A tiny KITTI-like folder: 32x24 images, camera moving 1 m forward per frame."""
+def fake_kitti(root: Path, frames=3, calib=CALIB, poses=None, width=32):
+    """A tiny KITTI-like folder: `width`x24 images, camera moving 1 m forward per frame."""
     rng = np.random.default_rng(0)
     for side in ('image_l', 'image_r'):
         (root / side).mkdir(parents=True)
         for i in range(frames):
             cv2.imwrite(str(root / side / f'{i:06d}.png'),
-                        rng.integers(0, 255, (24, 32), dtype=np.uint8))
+                        rng.integers(0, 255, (24, width), dtype=np.uint8))
     if calib is not None:
         (root / 'calib.txt').write_text(calib)
     if poses is None:
@@ -90,7 +90,7 @@ def test_real_kitti_sequence(tmp_path):
 @pytest.mark.parametrize('break_it, expected', [
     ('no_folder', 'KITTI folder not found'),
     ('no_right_image', 'image_r/000001.png is missing'),
-    ('no_image_dir', 'has no image_r/ folder'),
+    ('no_image_dir', 'has no image_l/ folder'),     # (no image_r/: a monocular sequence)
     ('no_calib', 'has no calib.txt'),
     ('short_calib', 'needs P0 and P1'),
     ('bad_poses', 'poses'),
@@ -108,9 +108,9 @@ def test_bad_input_is_one_line_user_error(tmp_path, break_it, expected):
     if break_it == 'no_right_image':
         (src / 'image_r' / '000001.png').unlink()
     if break_it == 'no_image_dir':
-        for f in (src / 'image_r').iterdir():
+        for f in (src / 'image_l').iterdir():
             f.unlink()
-        (src / 'image_r').rmdir()
+        (src / 'image_l').rmdir()
     if break_it == 'output_exists':
         out.mkdir()
         (out / 'x').write_text('x')
@@ -174,3 +174,102 @@ def test_real_kitti_sequence_without_wheel_through_the_graph(tmp_path):
     from replay_run import ReplayRun
     states = [s.values.get('state') for s in ReplayRun(bag, out, 0, '', '', 0).diagnostics('ego_motion/general_arbiter')]
     assert states.count('tracking') >= 50, states
+
+
+def fake_mono(root: Path, frames=5, times=True):
+    """A monocular KITTI-like folder (image_l only) with times.txt, 32x24 images."""
+    rng = np.random.default_rng(1)
+    (root / 'image_l').mkdir(parents=True)
+    for i in range(frames):
+        cv2.imwrite(str(root / 'image_l' / f'{i:06d}.png'), rng.integers(0, 255, (24, 32), dtype=np.uint8))
+    (root / 'calib.txt').write_text(CALIB)
+    (root / 'poses.txt').write_text(''.join(f'1 0 0 0 0 1 0 0 0 0 1 {float(i)}\n' for i in range(frames)))
+    if times:
+        (root / 'times.txt').write_text(''.join(f'{0.104 * i:.6e}\n' for i in range(frames)))
+    return root
+
+
+def test_monocular_sequence_with_its_own_stamps_every_second_frame(tmp_path):
+    src = fake_mono(tmp_path / 'seq')
+    s = import_kitti(src, tmp_path / 'bag', progress=False, every=2)
+    assert s['mono'] and s['cameras'] == ['left'] and s['frames'] == 3
+    topics, messages = read_bag(tmp_path / 'bag')
+    assert '/right/image_raw' not in topics
+    stamps = [t for tp, t, _ in messages if tp == '/left/image_raw']
+    assert np.allclose(np.diff(stamps), 0.208e9)                 # times.txt, every second
+    gt = [m for t, _, m in messages if t == '/ground_truth/odom']
+    assert [round(m.pose.pose.position.x, 9) for m in gt] == [0.0, 2.0, 4.0]
+    assert gt[1].twist.twist.linear.x == pytest.approx(2.0 / 0.208)
+    rig = load_rig(tmp_path / 'bag' / 'rig.yaml')
+    assert rig.road_scale and rig.stereo_pairs == () and not rig.detect_stereo
+
+
+def test_the_rig_comes_from_tf_static_with_the_road_below(tmp_path):
+    """base_footprint in /tf_static: a rig built from the bag, as from a user's, has the floor."""
+    from multicam_ego_motion.bag.rig_from_tf import rig_from_bag
+    from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
+    import_kitti(fake_mono(tmp_path / 'seq'), tmp_path / 'bag', progress=False)
+    rig = rig_from_bag(Rosbag2Reader(tmp_path / 'bag'))
+    assert rig.floor_z == 0.0
+    np.testing.assert_allclose(rig.camera('left').translation, [0, 0, 1.65], atol=1e-9)
+
+
+def test_halves_and_no_stereo_make_rigs_without_overlap(tmp_path):
+    # stereo sequence: the outer parts of both images (cx 40: columns 0-38 and 79-127), no pair
+    calib = CALIB.replace(' 600 ', ' 40 ')
+    import_kitti(fake_kitti(tmp_path / 'st', calib=calib, width=128), tmp_path / 'halves',
+                 progress=False, halves=True)
+    topics, messages = read_bag(tmp_path / 'halves')
+    info = {t: m for t, _, m in messages if t.endswith('camera_info')}
+    imgs = {t: m for t, _, m in messages if t.endswith('image_raw')}
+    assert imgs['/left/image_raw'].width == 39 and info['/left/camera_info'].k[2] == pytest.approx(40.0)
+    assert imgs['/right/image_raw'].width == 49 and info['/right/camera_info'].k[2] == pytest.approx(-39.0)
+    rig = load_rig(tmp_path / 'halves' / 'rig.yaml')
+    assert rig.stereo_pairs == () and not rig.detect_stereo
+    # monocular: the image's two halves, one centre
+    src = fake_mono(tmp_path / 'mono')
+    import_kitti(src, tmp_path / 'mhalves', progress=False, halves=True)
+    topics, messages = read_bag(tmp_path / 'mhalves')
+    info = {t: m for t, _, m in messages if t.endswith('camera_info')}
+    imgs = {t: m for t, _, m in messages if t.endswith('image_raw')}
+    assert imgs['/left/image_raw'].width == imgs['/right/image_raw'].width == 16
+    assert info['/right/camera_info'].k[2] == pytest.approx(600.0 - 16)
+    left = cv2.imread(str(src / 'image_l' / '000004.png'), cv2.IMREAD_GRAYSCALE)    # the last frame
+    right_img = np.frombuffer(bytes(imgs['/right/image_raw'].data), np.uint8).reshape(24, 16)
+    assert np.array_equal(right_img, left[:, 16:])
+    rig = load_rig(tmp_path / 'mhalves' / 'rig.yaml')
+    np.testing.assert_allclose(rig.camera('right').translation, rig.camera('left').translation)
+    # --no-stereo: both full images, the pair not named
+    import_kitti(fake_kitti(tmp_path / 'st2'), tmp_path / 'nost', progress=False, stereo=False)
+    rig = load_rig(tmp_path / 'nost' / 'rig.yaml')
+    assert rig.names == ['left', 'right'] and rig.stereo_pairs == () and rig.road_scale
+
+
+def test_real_kitti_halves_have_no_common_pixel(tmp_path):
+    """kitti_seq1 --halves: left columns 0-599, right columns 641-1225 (the issue's rig)."""
+    src = kitti_folder()
+    s = import_kitti(src, tmp_path / 'bag', progress=False, halves=True, max_frames=1)
+    topics, messages = read_bag(tmp_path / 'bag')
+    info = {t: m for t, _, m in messages if t.endswith('camera_info')}
+    assert info['/left/camera_info'].width == 600
+    assert info['/right/camera_info'].width == 1226 - 641
+    assert info['/right/camera_info'].k[2] == pytest.approx(601.8873 - 641, abs=1e-3)
+
+
+@pytest.mark.parametrize('break_it, expected', [
+    ('times_short', 'stamps for 5 images'),
+    ('times_backwards', 'must be finite and increasing'),
+    ('every_zero', '--every must be at least 1'),
+    ('halves_outside', 'principal point'),
+])
+def test_bad_monocular_input_is_a_user_error(tmp_path, break_it, expected):
+    src = fake_mono(tmp_path / 'seq')
+    if break_it == 'times_short':
+        (src / 'times.txt').write_text('0\n0.1\n')
+    if break_it == 'times_backwards':
+        (src / 'times.txt').write_text('0\n0.1\n0.05\n0.3\n0.4\n')
+    if break_it == 'halves_outside':      # cx 600 in a 32-column image: no left half
+        src = fake_kitti(tmp_path / 'st')
+    with pytest.raises(UserError, match=expected):
+        import_kitti(src, tmp_path / 'bag', progress=False, every=0 if break_it == 'every_zero' else 1,
+                     halves=break_it == 'halves_outside')

@@ -73,6 +73,20 @@ class Rig:
             return 'floor'
         return None
 
+    @property
+    def road_scale(self) -> bool:
+        """A rig over a road (floor_z, floor_level false) without a stereo pair: the road is
+        its only scale source, and one frame's road points hold the scale only as well as
+        the camera's pitch to the road is known, so the general arbiter also measures the
+        map's scale from the road between frames (scale_state, road_plane)."""
+        return self.floor_z is not None and not self.floor_level and not self.stereo_pairs
+
+    @property
+    def sends_bearings(self) -> bool:
+        """Whether the quarters publish their tracks for the general arbiter's scale: without
+        a metric source of the rig's own, and over a road (road_scale)."""
+        return self.metric_source is None or self.road_scale
+
     def stereo_partners(self, name: str) -> List[str]:
         """The cameras named with `name` in a stereo pair, in pair order."""
         return [b if a == name else a for a, b in self.stereo_pairs if name in (a, b)]

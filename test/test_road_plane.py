@@ -1,0 +1,95 @@
+"""Road points between two frames (camera_pose_nodes/road_plane): the plane homography finds
+the points on the road among points above it, and its step is metric from the camera's height
+whatever the camera's pitch to the road; the general arbiter's scale state turns such steps
+into a map rescale (arbiter_node/scale_state, road_scale)."""
+import numpy as np
+import pytest
+
+from arbiter_node.general_fusion import default_params
+from arbiter_node.scale_state import ScaleState
+from camera_pose_nodes.road_plane import camera_step, fit_road
+from multicam_ego_motion.geometry import se3
+from multicam_ego_motion.geometry.rig import CameraMount, Rig, optical_rotation
+
+HEIGHT = 1.65
+FOCAL = 700.0
+
+
+def road_scene(rng, pitch_deg=0.0, step=1.2, yaw_deg=2.0, n_road=40, n_above=20, noise_px=0.3):
+    """A camera HEIGHT above a road, pitched down by pitch_deg against it, moving `step` m
+    forward while turning yaw_deg. Returns (xy0, xy1, is_road, true camera step in camera 0,
+    down normal the rig believes (no pitch))."""
+    R_road_cam = se3.rotvec_to_R([np.radians(pitch_deg), 0.0, 0.0])   # camera pitched about its x
+    X_road = np.column_stack([rng.uniform(-4, 4, n_road), np.full(n_road, HEIGHT),
+                              rng.uniform(5, 20, n_road)])
+    X_above = np.column_stack([rng.uniform(-4, 4, n_above), HEIGHT - rng.uniform(0.3, 1.5, n_above),
+                               rng.uniform(5, 20, n_above)])
+    X = np.vstack([X_road, X_above]) @ R_road_cam          # in the (pitched) camera 0 frame
+    c1_road = np.array([0.0, 0.0, step])                    # camera 1's centre, road frame
+    R01 = se3.rotvec_to_R([0.0, np.radians(yaw_deg), 0.0])  # camera 1's axes in camera 0
+    c1 = R_road_cam.T @ c1_road
+    X1 = (X - c1) @ R01
+    sigma = noise_px / FOCAL
+    xy0 = X[:, :2] / X[:, 2:] + rng.normal(0, sigma, (len(X), 2))
+    xy1 = X1[:, :2] / X1[:, 2:] + rng.normal(0, sigma, (len(X), 2))
+    is_road = np.r_[np.ones(n_road, bool), np.zeros(n_above, bool)]
+    return xy0, xy1, is_road, c1, np.array([0.0, 1.0, 0.0])
+
+
+@pytest.mark.parametrize('pitch_deg', [0.0, 2.0, -1.5])
+def test_the_road_points_and_a_metric_step_whatever_the_pitch(pitch_deg):
+    rng = np.random.default_rng(1)
+    xy0, xy1, is_road, c1, down = road_scene(rng, pitch_deg)
+    fit = fit_road(xy0, xy1, down, HEIGHT, 2.5 / FOCAL, 0.1)
+    assert fit is not None
+    # nearly all road points in, points 0.3 m and more above the road out
+    assert fit.inliers[is_road].mean() > 0.9
+    assert fit.inliers[~is_road].mean() < 0.2
+    # the step from the plane's homography and the known height: metric, pitch or not
+    np.testing.assert_allclose(camera_step(fit), c1, atol=0.05 * np.linalg.norm(c1))
+
+
+def test_a_short_step_or_a_scene_without_road_observes_nothing():
+    rng = np.random.default_rng(2)
+    xy0, xy1, _, _, down = road_scene(rng, step=0.05)
+    assert fit_road(xy0, xy1, down, HEIGHT, 2.5 / FOCAL, 0.1) is None
+    # a wall ahead instead of a road: its plane's normal is not the floor's
+    X = np.column_stack([rng.uniform(-4, 4, 40), rng.uniform(-1, 1.5, 40), np.full(40, 12.0)])
+    X1 = X - [0.0, 0.0, 1.0]
+    assert fit_road(X[:, :2] / X[:, 2:], X1[:, :2] / X1[:, 2:], down, HEIGHT, 2.5 / FOCAL, 0.1) is None
+
+
+def test_scale_state_rescales_a_road_map_that_is_too_large():
+    """A single camera over a road whose fused poses move 1.25 times too far: the road's
+    steps between frames say so, and the scale state commands a rescale by about 0.8."""
+    rig = Rig(cameras=[CameraMount('front', '/front/image_raw', '/front/camera_info', 'front_optical',
+                                   np.array([0.0, 0.0, HEIGHT]), optical_rotation(0.0))],
+              floor_z=0.0, floor_level=False, stereo_pairs=(), detect_stereo=False)
+    assert rig.road_scale and rig.sends_bearings
+    state = ScaleState(rig, default_params())
+    rng = np.random.default_rng(4)
+    cam = rig.cameras[0]
+    step, map_factor, dt_ns = 1.0, 1.25, 100_000_000
+    commands = []
+    # road points fixed in the world (base_link at frame 0 = odom), seen from each frame
+    Xw = np.column_stack([rng.uniform(3, 110, 800), rng.uniform(-4, 4, 800), np.zeros(800)])
+    ids = np.arange(len(Xw))
+    for k in range(80):
+        T_true = se3.make_T(np.eye(3), [k * step, 0.0, 0.0])
+        T_map = se3.make_T(np.eye(3), [k * step * map_factor, 0.0, 0.0])
+        for c in commands:             # the map as rescaled so far
+            T_map[:3, 3] *= c.factor
+        Tc = T_true @ cam.T_base_cam
+        Xc = (Xw - Tc[:3, 3]) @ Tc[:3, :3]
+        seen = (Xc[:, 2] > 2.0) & (Xc[:, 2] < 25.0)
+        xy = Xc[seen, :2] / Xc[seen, 2:] + rng.normal(0, 0.3 / FOCAL, (seen.sum(), 2))
+        state.add_bearings('front', 3, k * dt_ns, ids[seen], xy, np.full(seen.sum(), 0.5 / FOCAL))
+        state.observe(k * dt_ns, T_map, {'front': T_map})
+        c = state.decide(k * dt_ns, T_map)
+        if c is not None:
+            state.pending = None       # (the general arbiter applies it to its filter)
+            commands.append(c)
+    assert commands, 'no rescale'
+    total = np.prod([c.factor for c in commands])
+    assert total == pytest.approx(1.0 / map_factor, rel=0.05)
+    assert state.n_road_fits >= 10
