@@ -54,7 +54,7 @@ def road_region(xy: np.ndarray, down_c: np.ndarray, R_base_cam: np.ndarray, heig
     rays = np.column_stack([xy, np.ones(len(xy))])
     s = rays @ down_c / np.linalg.norm(rays, axis=1)
     ok = s >= np.sin(ROAD_MIN_DEPRESSION_RAD)
-    lam = np.where(ok, height / np.where(ok, rays @ down_c, 1.0), np.inf)
+    lam = np.where(ok, height / np.where(ok, rays @ down_c, 1.0), 0.0)
     X_body = (rays * lam[:, None]) @ R_base_cam.T          # from the camera, in base_link axes
     return ok & (X_body[:, 0] <= ROAD_AHEAD_M) & (np.abs(X_body[:, 1]) <= ROAD_HALF_WIDTH_M)      # per camera: a pair spans at most scale_pair_max_frames + 1
 

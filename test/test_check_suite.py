@@ -66,8 +66,16 @@ def test_suite_paths_defaults_and_names(tmp_path):
      'bags[0] (loop): limits.odometry_share', 'must be between 0 and 1'),
     ({'bags': [{'name': 'loop', 'generate': LOOP}]}, 'bags[0] (loop)', 'nothing to check'),
     ({'bags': [{'name': 'loop', 'generate': LOOP, 'bag': 'b', 'limits': {'ate_pct': 1}}]},
-     'bags[0] (loop)', 'either bag (a bag folder) or generate (a scenario), not both'),
-    ({'bags': [{'name': 'loop', 'limits': {'ate_pct': 1}}]}, 'bags[0] (loop)', 'not neither'),
+     'bags[0] (loop)', 'or import_kitti (a KITTI sequence), not bag and generate'),
+    ({'bags': [{'name': 'loop', 'limits': {'ate_pct': 1}}]}, 'bags[0] (loop)', 'not none'),
+    ({'bags': [{'name': 'k', 'import_kitti': {'folder': 'no_such_seq'}, 'limits': {'ate_pct': 1}}]},
+     'bags[0] (k): import_kitti.folder', 'no_such_seq not found'),
+    ({'bags': [{'name': 'k', 'import_kitti': {'every': 2}, 'limits': {'ate_pct': 1}}]},
+     'bags[0] (k): import_kitti', 'needs a folder'),
+    ({'bags': [{'name': 'k', 'import_kitti': {'folder': '.', 'stereo': False}, 'limits': {'ate_pct': 1}}]},
+     'bags[0] (k): import_kitti.stereo', 'unknown key'),
+    ({'bags': [{'name': 'k', 'import_kitti': {'folder': '.', 'halves': 'yes'}, 'limits': {'ate_pct': 1}}]},
+     'bags[0] (k): import_kitti.halves', 'expected true or false'),
     ({'bags': [{'bag': 'missing_bag', 'limits': {'ate_pct': 1}}]},
      'bags[0] (missing_bag): bag', 'missing_bag not found'),
     ({'bags': [{'name': 'x', 'generate': {**LOOP, 'scenario': 'moon'}, 'limits': {'ate_pct': 1}}]},
@@ -345,3 +353,15 @@ def test_short_bag_passes_loose_limits_and_fails_an_impossible_one(tmp_path):
     assert failure.get('message').startswith('short_strict: final_drift_pct ')
     assert '| short_strict | final_drift_pct | ' in re.sub(' +', ' ', (out / 'summary.md').read_text())
     assert load_baseline(tmp_path / 'baseline.json')['short'] == short['figures']
+
+
+def test_a_frame_stamped_between_microseconds_counts_as_having_odometry():
+    """A KITTI times.txt stamp at x.5 us, its /odom stamp in float seconds: the same frame."""
+    from multicam_ego_motion.check.figures import figures_from
+    base = 1_704_067_200 * 10 ** 9
+    frames = [base + 103_875_200, base + 5_123_456_500, base + 9_999_999_900]
+    f = figures_from({'scale_error_pct': 0.0, 'path_length_m': 1.0}, frames, [ns * 1e-9 for ns in frames])
+    assert f['frames_with_odometry'] == 3 and f['odometry_share'] == 1.0
+    # a frame 30 ms from any /odom is still missing
+    f = figures_from({'scale_error_pct': 0.0, 'path_length_m': 1.0}, frames, [ns * 1e-9 + 0.03 for ns in frames])
+    assert f['frames_with_odometry'] == 0

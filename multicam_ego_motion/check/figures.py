@@ -64,7 +64,9 @@ def figures_from(metrics: dict, frame_stamps_ns, odom_stamps_s) -> dict:
     out['abs_scale_error_pct'] = _clean(abs(float(metrics['scale_error_pct'])))
     odom_us = {round(s * 1e6) for s in odom_stamps_s}
     frames = sorted(set(frame_stamps_ns))
-    with_odom = sum(1 for ns in frames if round(ns / 1e3) in odom_us)
+    # within a microsecond: a stamp in float seconds near 1.7e9 keeps ~0.2 us, so a frame at
+    # x.5 us (KITTI's times.txt has 0.1 us) can round to either neighbour
+    with_odom = sum(1 for ns in frames if any(round(ns / 1e3) + d in odom_us for d in (-1, 0, 1)))
     out['odometry_share'] = with_odom / len(frames) if frames else 0.0
     out['frames'] = len(frames)
     out['frames_with_odometry'] = with_odom
