@@ -1,0 +1,57 @@
+"""Real roads: the KITTI regression suite, test/suites/kitti.yaml, run through `ego-motion
+check` when ../shared/datasets holds the sequences (KITTI may not be committed; without them
+the tests are skipped with the reason). Each case is imported as `ego-motion import-kitti`
+does (monocular, every second frame, image halves, a stereo pair with or without knowing it
+overlaps), replayed through the whole graph in lockstep on 2 workers without a wheel, and
+must keep its ATE and final drift and give every frame its /odom. About 1.5 minutes."""
+import json
+from pathlib import Path
+
+import pytest
+
+from conftest import run_cli
+from multicam_ego_motion.check.suite import load_suite
+
+SUITE = Path(__file__).resolve().parent / 'suites' / 'kitti.yaml'
+DATASETS = Path(__file__).resolve().parents[2] / 'shared' / 'datasets'
+SEQUENCES = ('kitti07_mono', 'kitti_seq1')
+BAGS = ('kitti07_mono', 'kitti07_mono_5hz', 'kitti07_mono_halves', 'kitti_seq1_stereo',
+        'kitti_seq1_stereo_5hz', 'kitti_seq1_road', 'kitti_seq1_halves')
+FRAMES = {'kitti07_mono': 160, 'kitti07_mono_5hz': 80, 'kitti07_mono_halves': 160, 'kitti_seq1_stereo': 51,
+          'kitti_seq1_stereo_5hz': 26, 'kitti_seq1_road': 51, 'kitti_seq1_halves': 51}
+
+missing = [s for s in SEQUENCES if not (DATASETS / s / 'poses.txt').is_file()]
+pytestmark = pytest.mark.skipif(bool(missing), reason=f'KITTI sequences not in {DATASETS}: {", ".join(missing)}')
+
+
+@pytest.fixture(scope='module')
+def results(tmp_path_factory):
+    root = tmp_path_factory.mktemp('kitti')
+    out = root / 'check'
+    r = run_cli('check', SUITE, '--out', out, '--bags-cache', root / 'bags', timeout=1200)
+    # 1: a regression, which the per-bag tests below name; anything else is a broken run
+    assert r.returncode in (0, 1), r.stdout + r.stderr
+    return json.loads((out / 'results.json').read_text())
+
+
+def test_suite_holds_every_case_of_the_real_road_targets():
+    suite = load_suite(SUITE)
+    assert tuple(b.name for b in suite.bags) == BAGS
+    assert all(b.no_wheel and b.workers == 2 and b.limits['odometry_share'] == 1.0 for b in suite.bags)
+    assert all({'ate_pct', 'final_drift_pct'} <= set(b.limits) for b in suite.bags)
+    kinds = {b.name: b.import_kitti for b in suite.bags}
+    assert kinds['kitti07_mono_5hz'].every == 2 and kinds['kitti_seq1_road'].no_stereo
+    assert kinds['kitti_seq1_halves'].halves and kinds['kitti07_mono_halves'].halves
+
+
+@pytest.mark.parametrize('name', BAGS)
+def test_real_road_accuracy(results, name):
+    bag = results['bags'][name]
+    assert bag['error'] is None, f'{name}: replay failed: {bag["error"]}'
+    f = bag['figures']
+    assert f['frames'] == FRAMES[name], f'{name}: {f["frames"]} of {FRAMES[name]} frames played'
+    assert f['frames_with_odometry'] == FRAMES[name], f'{name}: /odom for {f["frames_with_odometry"]} frames'
+    summary = ', '.join(f'{c["figure"]} ' + ('n/a' if c['value'] is None else f'{c["value"]:.3f}')
+                        + f' ({c["condition"]})' for c in bag['checks'])
+    failed = [c['figure'] for c in bag['checks'] if not c['passed']]
+    assert not failed, f'{name}: {", ".join(failed)} out of bounds ({summary})'
