@@ -270,7 +270,12 @@ def test_stereo_rig_starts_with_its_speed_open():
     states, x = run(stereo)
     assert states[1:] == ['tracking'] * 5 and x == pytest.approx(6.0, abs=0.05)
     from dataclasses import replace
-    states, _ = run(replace(stereo, stereo_pairs=()))      # at rest: the later frames gated out
+    # the floor is a scale source of its own too (a car over a road): the same start
+    assert stereo.floor_z is not None
+    states, x = run(replace(stereo, stereo_pairs=()))
+    assert states[1:] == ['tracking'] * 5 and x == pytest.approx(6.0, abs=0.05)
+    # without either the start is at rest: the later frames gated out
+    states, _ = run(replace(stereo, stereo_pairs=(), floor_z=None))
     assert 'dead_reckoning' in states
 
 
