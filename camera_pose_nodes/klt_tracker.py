@@ -240,45 +240,28 @@ class KLTTracker:
     def extract(self, stamp_ns: int) -> int:
         """Top the quarter up with Shi-Tomasi corners, one grid cell at a time, away from
         existing tracks. Returns the number of new features."""
-        reg = self.region
-        return self._extract(stamp_ns, reg.y0, self.cfg.grid_rows, self.cfg.max_features)
-
-    def count_below(self, row: int) -> int:
-        """Tracks in the image rows from `row` down."""
-        return int((self.pts[:, 1] >= row).sum())
-
-    def extract_below(self, stamp_ns: int, row: int, count: int) -> int:
-        """Top the quarter's rows from `row` down up to `count` features (one row of cells):
-        the road below the horizon, whose points give the metric steps (road_plane) but
-        whose weak texture loses to the scene's corners in extract()."""
-        reg = self.region
-        if row >= reg.y1 - 2:
-            return 0
-        return self._extract(stamp_ns, max(int(row), reg.y0), 1, count)
-
-    def _extract(self, stamp_ns: int, y_top: int, grid_rows: int, max_features: int) -> int:
         crop = self._cur_crop
         if crop is None:
             return 0
         cfg, reg = self.cfg, self.region
         ox, oy = reg.cx0, reg.cy0
-        n_cells = grid_rows * cfg.grid_cols
-        cap = math.ceil(max_features / n_cells)
+        n_cells = cfg.grid_rows * cfg.grid_cols
+        cap = math.ceil(cfg.max_features / n_cells)
         xs = np.linspace(reg.x0, reg.x1, cfg.grid_cols + 1).round().astype(int)
-        ys = np.linspace(y_top, reg.y1, grid_rows + 1).round().astype(int)
+        ys = np.linspace(reg.y0, reg.y1, cfg.grid_rows + 1).round().astype(int)
         half = int(math.ceil(cfg.min_distance_px / 2))
         pad = cfg.block_size
         existing = self.pts
 
         cells = []
-        for r in range(grid_rows):
+        for r in range(cfg.grid_rows):
             for c in range(cfg.grid_cols):
                 # Interior cell borders are shrunk by half the min distance so that corners
                 # of neighbouring cells keep the spacing a single call would enforce.
                 x0 = xs[c] + (half if c > 0 else 0)
                 x1 = xs[c + 1] - (half if c < cfg.grid_cols - 1 else 0)
                 y0 = ys[r] + (half if r > 0 else 0)
-                y1 = ys[r + 1] - (half if r < grid_rows - 1 else 0)
+                y1 = ys[r + 1] - (half if r < cfg.grid_rows - 1 else 0)
                 inside = ((existing[:, 0] >= xs[c]) & (existing[:, 0] < xs[c + 1])
                           & (existing[:, 1] >= ys[r]) & (existing[:, 1] < ys[r + 1]))
                 want = cap - int(inside.sum())

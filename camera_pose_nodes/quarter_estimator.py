@@ -40,7 +40,6 @@ _ROTATION_ONLY_POSITION_VARIANCE = 1.0e2   # m^2: 'position not measured', still
 _TRIANGULATION_VIEWS = 5     # views per DLT: oldest, newest and evenly spaced between
 _PREDICT_MAX_RATE_STD = 0.5  # rad/s: a less certain angular rate does not steer the tracker
 _PREDICT_MAX_DT_S = 1.0      # nor does one from longer ago
-_ROAD_MAX_DEPTH_M = 25.0     # the road band: where the floor is nearer than this
 _PREDICT_MIN_SPEED_STD = 0.5          # m/s: a velocity this certain steers the tracker ...
 _PREDICT_MAX_SPEED_REL_STD = 0.5      # ... or one known to half its speed
 
@@ -58,13 +57,14 @@ def _view_tables(max_views: int):
         distinct[m] = [1.0 if v == 0 or js[v] != js[v - 1] else 0.0 for v in range(len(js))]
     return idx, distinct
 
+
 def feature_scale(image_size, scale_max: float) -> float:
     """How many times min_features and max_features a quarter of this image keeps: the square
     root of its area against a 160x120 quarter's, between 1 and scale_max. Why: the counts
     were set on 320x240 images; a real camera's quarter (KITTI: 613x185) spread 80 corners
     over six times the area, its road got a handful, and at car speed the few road points
     that survived a frame could not say which of them lay on the road (road_plane). Twice
-    the features: ATE over 14 real KITTI cases and variants summed 513 -> 330 %."""
+    the features: ATE + final drift over 14 KITTI cases and variants 733 -> 428 %."""
     w, h = image_size
     return float(np.clip(math.sqrt((w / 2) * (h / 2) / (160.0 * 120.0)), 1.0, scale_max))
 
@@ -117,8 +117,7 @@ PARAMETERS = {
     'min_depth': (0.1, 'nearest accepted landmark depth (m)', 0.001, 10.0),
     'max_depth': (200.0, 'farthest accepted landmark depth (m)', 1.0, 1e5),
     'ground_plane': (True, 'put landmarks that lie on the floor onto it: their depth is then metric from the camera height (see ground_plane; needs the rig\'s floor_z)', None, None),
-    'road_landmarks': (True, "on a road (the rig's floor_level false), every frame, tracks that moved since the previous frame as the floor does (a plane homography whose normal and height agree with the rig's floor: road_plane) are placed on the floor from the previous fused pose: metric steps at car speed without a wheel or stereo (needs ground_plane)", None, None),
-    'road_features': (60, "features a road quarter keeps in its image below the horizon (the floor within 25 m), extracted beside the others: the road's weak texture loses to the scene's corners (road_landmarks)", 0, 1000),
+    'road_landmarks': (True, "on a road (the rig's floor_level false, no stereo pair), every frame, tracks that moved since the previous frame as the floor does (a plane homography whose normal and height agree with the rig's floor: road_plane) are placed on the floor from the previous fused pose: metric steps at car speed without a wheel or stereo (needs ground_plane)", None, None),
     'road_min_step': (0.1, 'shortest camera step (m) between two frames at which road_landmarks looks for the floor (shorter: points above it move alike)', 0.001, 10.0),
     'ground_tolerance': (0.3, 'a floor landmark\'s depth is never farther than this fraction from its ray\'s floor intersection', 0.001, 1.0),
     'two_view_init': (True, 'without landmarks, floor or any motion of the fused poses, initialise from two-view geometry on the tracks (essential matrix): rotation and direction of travel, the length from two_view_nominal_speed (see two_view)', None, None),
@@ -184,10 +183,11 @@ class QuarterEstimator:
                  floor_z: Optional[float] = None, road: bool = False):
         """floor_z: the rig's floor in base_link (Rig.floor_z); None disables floor landmarks.
         road: the floor is a road, flat only locally, and the rig has no stereo pair
-        (Rig.road_scale): road_landmarks runs there. Why not on a level indoor floor: at walking speed the steps between two
-        frames (0.1 to 0.2 m) cannot tell the floor from points a few cm above it, and
-        triangulation with the floor check (snap_to_floor) has the time to: the accuracy
-        matrix's mean final drift went from 0.32 to 0.43 % with road_landmarks there."""
+        (Rig.road_scale): road_landmarks runs there. Why not on a level indoor floor: at
+        walking speed the steps between two frames (0.1 to 0.2 m) cannot tell the floor from
+        points a few cm above it, and triangulation with the floor check (snap_to_floor) has
+        the time to: the accuracy matrix's mean final drift went from 0.32 to 0.43 % with
+        road_landmarks there."""
         self.camera = camera
         self.floor_z = floor_z
         self.quarter = int(quarter)
@@ -211,7 +211,6 @@ class QuarterEstimator:
         self.source = f'{camera.name}/q{self.quarter}'
         self.T_base_cam = camera.T_base_cam
         self.tracker = KLTTracker(self.region, self.klt_cfg)
-        self.road_row = self._road_top_row()
         self.ekf = PoseEKF(p.accel_sigma, p.alpha_sigma)
         self.landmarks = LandmarkMap(p.parallax_deg, p.max_reproj_px, p.min_depth, p.max_depth,
                                      p.refine_factor, focal_px=0.5 * (intrinsics.fx + intrinsics.fy),
@@ -327,7 +326,7 @@ class QuarterEstimator:
         # New features are extracted later (extract_pending): they have no landmark and no
         # earlier view, so they take no part in this frame's estimate, and a worker extracts
         # them once the estimate is out, in its idle time (latency).
-        if self.tracker.needs_features() or self._road_needs_features():
+        if self.tracker.needs_features():
             self._extract_due = int(stamp_ns)
         ms['extract'] = self.extract_ms     # ran after the previous estimate
         self.extract_ms = 0.0
@@ -504,12 +503,13 @@ class QuarterEstimator:
         self._motion.Xc = (X - T[:3, 3]) @ T[:3, :3]
 
     def _flow_predictor(self, stamp_ns):
-        """(forward, backward) pixel maps of the camera's rotation from the last estimate to
+        """(forward, backward) pixel maps of the camera's motion from the last estimate to
         `stamp_ns`, or None. Why: in a turn the features move tens of pixels a frame and
         Lucas-Kanade, starting from zero flow, iterated to its limit on every pyramid level
         (tracking took twice its straight-line CPU in the loop's turns, at 30 Hz the graph fell
         behind there); from the rotation's prediction it converges in a few steps. The
-        translation is left to the search (it moves near points only)."""
+        translation moves near points only: it is left to the search below
+        predict_translation_min_speed (flow_prediction above it)."""
         if self._motion is None:
             return None
         dt = (int(stamp_ns) - self._motion.stamp_ns) * 1e-9
@@ -531,23 +531,6 @@ class QuarterEstimator:
             return apply
         return rotate(R21), rotate(R21.T)
 
-    def _road_needs_features(self) -> bool:
-        return self.road_row is not None and \
-            self.tracker.count_below(self.road_row) < self.params.road_features // 2
-
-    def _road_top_row(self) -> Optional[int]:
-        """The first image row of this quarter (at its middle column) whose ray meets the
-        floor within ROAD_MAX_DEPTH_M (road_landmarks' extraction band), or None."""
-        if not self.uses_road:
-            return None
-        reg = self.region
-        rows = np.arange(reg.y0, reg.y1, dtype=float)
-        px = np.column_stack([np.full(len(rows), 0.5 * (reg.x0 + reg.x1)), rows])
-        rays = np.column_stack([self.intrinsics.undistort_points(px), np.ones(len(rows))])
-        floor = flow_prediction.floor_points_cam(rays, self.T_base_cam, self.floor_z)
-        near = np.flatnonzero(np.isfinite(floor[:, 2]) & (floor[:, 2] <= _ROAD_MAX_DEPTH_M))
-        return int(rows[near[0]]) if len(near) else None
-
     def extraction_due(self) -> bool:
         return self._extract_due is not None
 
@@ -558,10 +541,7 @@ class QuarterEstimator:
         if self._extract_due is None:
             return
         t0 = time.thread_time()
-        if self.tracker.needs_features():
-            self.tracker.extract(self._extract_due)
-        if self._road_needs_features():
-            self.tracker.extract_below(self._extract_due, self.road_row, self.params.road_features)
+        self.tracker.extract(self._extract_due)
         self._extract_due = None
         self.extract_ms += (time.thread_time() - t0) * 1e3
 

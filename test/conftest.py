@@ -28,6 +28,30 @@ def run_cli(*args, timeout=60, **kw):
                           capture_output=True, text=True, timeout=timeout, env=env, **kw)
 
 
+def check_suite(suite, root: Path, timeout: int) -> dict:
+    """`ego-motion check SUITE` into root; its results.json. Exit 1 (a regression) is for the
+    per-bag tests to name (assert_suite_bag); anything else is a broken run."""
+    out = root / 'check'
+    r = run_cli('check', suite, '--out', out, '--bags-cache', root / 'bags', timeout=timeout)
+    assert r.returncode in (0, 1), r.stdout + r.stderr
+    import json
+    return json.loads((out / 'results.json').read_text())
+
+
+def assert_suite_bag(results: dict, name: str, frames: int):
+    """One bag of a check run: replayed whole, /odom for every frame, every figure in bounds."""
+    bag = results['bags'][name]
+    assert bag['error'] is None, f'{name}: replay failed: {bag["error"]}'
+    f = bag['figures']
+    assert f['frames'] == frames, f'{name}: {f["frames"]} of {frames} frames played'
+    assert f['frames_with_odometry'] == f['odometry_poses'] == frames, \
+        f'{name}: odometry for {f["frames_with_odometry"]} of {frames} frames'
+    summary = ', '.join(f'{c["figure"]} ' + ('n/a' if c['value'] is None else f'{c["value"]:.4f}')
+                        + f' ({c["condition"]})' for c in bag['checks'])
+    failed = [c['figure'] for c in bag['checks'] if not c['passed']]
+    assert not failed, f'{name}: {", ".join(failed)} out of bounds ({summary})'
+
+
 def start_cli(*args):
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
     return subprocess.Popen([sys.executable, '-m', 'multicam_ego_motion.cli', *map(str, args)],

@@ -4,12 +4,11 @@ the tests are skipped with the reason). Each case is imported as `ego-motion imp
 does (monocular, every second frame, image halves, a stereo pair with or without knowing it
 overlaps), replayed through the whole graph in lockstep on 2 workers without a wheel, and
 must keep its ATE and final drift and give every frame its /odom. About 1.5 minutes."""
-import json
 from pathlib import Path
 
 import pytest
 
-from conftest import run_cli
+from conftest import assert_suite_bag, check_suite
 from multicam_ego_motion.check.suite import load_suite
 
 SUITE = Path(__file__).resolve().parent / 'suites' / 'kitti.yaml'
@@ -26,12 +25,7 @@ pytestmark = pytest.mark.skipif(bool(missing), reason=f'KITTI sequences not in {
 
 @pytest.fixture(scope='module')
 def results(tmp_path_factory):
-    root = tmp_path_factory.mktemp('kitti')
-    out = root / 'check'
-    r = run_cli('check', SUITE, '--out', out, '--bags-cache', root / 'bags', timeout=1200)
-    # 1: a regression, which the per-bag tests below name; anything else is a broken run
-    assert r.returncode in (0, 1), r.stdout + r.stderr
-    return json.loads((out / 'results.json').read_text())
+    return check_suite(SUITE, tmp_path_factory.mktemp('kitti'), timeout=1200)
 
 
 def test_suite_holds_every_case_of_the_real_road_targets():
@@ -46,12 +40,4 @@ def test_suite_holds_every_case_of_the_real_road_targets():
 
 @pytest.mark.parametrize('name', BAGS)
 def test_real_road_accuracy(results, name):
-    bag = results['bags'][name]
-    assert bag['error'] is None, f'{name}: replay failed: {bag["error"]}'
-    f = bag['figures']
-    assert f['frames'] == FRAMES[name], f'{name}: {f["frames"]} of {FRAMES[name]} frames played'
-    assert f['frames_with_odometry'] == FRAMES[name], f'{name}: /odom for {f["frames_with_odometry"]} frames'
-    summary = ', '.join(f'{c["figure"]} ' + ('n/a' if c['value'] is None else f'{c["value"]:.3f}')
-                        + f' ({c["condition"]})' for c in bag['checks'])
-    failed = [c['figure'] for c in bag['checks'] if not c['passed']]
-    assert not failed, f'{name}: {", ".join(failed)} out of bounds ({summary})'
+    assert_suite_bag(results, name, FRAMES[name])
