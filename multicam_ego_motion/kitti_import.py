@@ -47,6 +47,8 @@ def configure_parser(p):
                    help='also write /wheel/odom simulated from the ground truth with the scenario '
                         'generator\'s slip model (KITTI odometry has no wheel or IMU data; without '
                         'a metric prior a straight drive gives the rig no scale)')
+    p.add_argument('--skip', type=int, default=0, metavar='N',
+                   help='start at frame N (the drive already under way; odom starts there)')
     p.add_argument('--every', type=int, default=1, metavar='N',
                    help='keep every N-th frame (2: KITTI at 5 Hz, twice the motion between frames)')
     p.add_argument('--no-stereo', action='store_true',
@@ -244,8 +246,8 @@ def simulated_wheel(twists, times, seed):
 
 
 def import_kitti(folder, out, rig_out=None, max_frames=None, progress=True, wheel_seed=None,
-                 every=1, stereo=True, halves=False):
-    """`every`: keep every N-th frame (5 Hz from KITTI's 10 with 2); `stereo` False: the two
+                 every=1, stereo=True, halves=False, skip=0):
+    """`skip`: start at that frame (odom and the ground truth start there); `every`: keep every N-th frame (5 Hz from KITTI's 10 with 2); `stereo` False: the two
     cameras of a stereo sequence do not know they overlap (stereo_pairs: []); `halves`: the
     rig of non-overlapping views described in rig_cameras. A sequence without image_r/ is
     monocular."""
@@ -256,6 +258,8 @@ def import_kitti(folder, out, rig_out=None, max_frames=None, progress=True, whee
         raise UserError(f'output {out} already exists (choose another --out or remove it)')
     if every < 1:
         raise UserError(f'--every must be at least 1, got {every}')
+    if skip < 0:
+        raise UserError(f'--skip must be at least 0, got {skip}')
     mono = not (folder / 'image_r').is_dir()
     left, right = list_images(folder, stereo=not mono)
     P0, P1, baseline = read_calibration(folder)
@@ -268,12 +272,17 @@ def import_kitti(folder, out, rig_out=None, max_frames=None, progress=True, whee
     if camera_poses and len(camera_poses) != len(left):
         log.warning('%d images but %d poses: ground truth covers the first %d frames',
                     len(left), len(camera_poses), min(len(left), len(camera_poses)))
-    keep = list(range(0, len(left), every))
+    keep = list(range(skip, len(left), every))
+    if not keep:
+        raise UserError(f'--skip {skip}: the sequence has {len(left)} frames')
     if max_frames is not None:
         keep = keep[:max_frames]
     sources = [left, right]
     camera_poses = [camera_poses[i] for i in keep if i < len(camera_poses)]
-    times = times[keep]
+    if camera_poses:     # the first kept frame is the origin
+        first_inv = inv_T(camera_poses[0])
+        camera_poses = [first_inv @ T for T in camera_poses]
+    times = times[keep] - times[keep[0]]
 
     first = read_mono(left[0])
     h, w = first.shape
@@ -319,7 +328,7 @@ def run(args) -> int:
     if args.max_frames is not None and args.max_frames < 1:
         raise UserError(f'--max-frames must be at least 1, got {args.max_frames}')
     s = import_kitti(args.folder, args.out, args.rig_out, args.max_frames, wheel_seed=args.simulated_wheel,
-                     every=args.every, stereo=not args.no_stereo, halves=args.halves)
+                     every=args.every, stereo=not args.no_stereo, halves=args.halves, skip=args.skip)
     wheel = f', simulated wheel odometry for {s["wheel"]} frames' if s['wheel'] else ''
     kind = 'monocular' if s['mono'] else 'stereo'
     print(f'{args.out}: {s["frames"]} {kind} frames {s["size"][0]}x{s["size"][1]} at '

@@ -273,3 +273,17 @@ def test_bad_monocular_input_is_a_user_error(tmp_path, break_it, expected):
     with pytest.raises(UserError, match=expected):
         import_kitti(src, tmp_path / 'bag', progress=False, every=0 if break_it == 'every_zero' else 1,
                      halves=break_it == 'halves_outside')
+
+
+def test_skip_starts_the_drive_under_way(tmp_path):
+    """--skip 2: the third frame is the origin of odom and of the ground truth."""
+    s = import_kitti(fake_mono(tmp_path / 'seq'), tmp_path / 'bag', progress=False, skip=2)
+    assert s['frames'] == 3
+    _, messages = read_bag(tmp_path / 'bag')
+    gt = [m for t, _, m in messages if t == '/ground_truth/odom']
+    assert [round(m.pose.pose.position.x, 9) for m in gt] == [0.0, 1.0, 2.0]
+    assert gt[0].twist.twist.linear.x == pytest.approx(1.0 / 0.104)
+    stamps = [t for tp, t, _ in messages if tp == '/left/image_raw']
+    assert np.allclose(np.diff(stamps), 0.104e9)
+    with pytest.raises(UserError, match='--skip 9: the sequence has 5 frames'):
+        import_kitti(fake_mono(tmp_path / 'seq2'), tmp_path / 'bag2', progress=False, skip=9)
