@@ -43,7 +43,7 @@ SOURCES = ('none', 'rig rotation', 'road', 'floor', 'wheel', 'stereo')
 ROAD_MIN_DEPRESSION_RAD = np.radians(3.0)   # tracks nearer the horizon meet the road too far
 ROAD_AHEAD_M = 20.0          # the road region: where the floor is nearer than this ...
 ROAD_HALF_WIDTH_M = 3.0      # ... and within this of the camera sideways (the lane)
-BEARING_STAMPS_KEPT = 12
+BEARING_STAMPS_KEPT = 12      # per camera: a pair spans at most scale_pair_max_frames + 1
 
 
 def road_region(xy: np.ndarray, down_c: np.ndarray, R_base_cam: np.ndarray, height: float) -> np.ndarray:
@@ -56,7 +56,7 @@ def road_region(xy: np.ndarray, down_c: np.ndarray, R_base_cam: np.ndarray, heig
     ok = s >= np.sin(ROAD_MIN_DEPRESSION_RAD)
     lam = np.where(ok, height / np.where(ok, rays @ down_c, 1.0), 0.0)
     X_body = (rays * lam[:, None]) @ R_base_cam.T          # from the camera, in base_link axes
-    return ok & (X_body[:, 0] <= ROAD_AHEAD_M) & (np.abs(X_body[:, 1]) <= ROAD_HALF_WIDTH_M)      # per camera: a pair spans at most scale_pair_max_frames + 1
+    return ok & (X_body[:, 0] <= ROAD_AHEAD_M) & (np.abs(X_body[:, 1]) <= ROAD_HALF_WIDTH_M)
 
 
 def metric_source(rig, wheel_seen: bool) -> Optional[str]:

@@ -68,15 +68,15 @@ def floor_points_cam(rays: np.ndarray, T_base_cam: np.ndarray, floor_z: Optional
 def predictor(prior: MotionPrior, stamp_ns: int, T_base_cam: np.ndarray, intrinsics,
               track_ids: np.ndarray, floor_z: Optional[float]):
     """(forward, backward) maps for KLTTracker.flow: full-image pixels (N, 2) of the tracks
-    `rows` (indices into track_ids) -> where they should be in the new / previous image."""
+    `rows` (indices into track_ids) -> where they should be in the new / previous image.
+    The prior has a velocity (rotation alone: the quarter's own rotation map)."""
     dt = (int(stamp_ns) - prior.stamp_ns) * 1e-9
     R, t = camera_motion(prior, dt, T_base_cam)
     known = np.full((len(track_ids), 3), np.nan)
-    if prior.v_body is not None and prior.ids is not None and len(prior.ids) and len(track_ids):
+    if prior.ids is not None and len(prior.ids) and len(track_ids):
         i = np.minimum(np.searchsorted(prior.ids, track_ids), len(prior.ids) - 1)
         hit = prior.ids[i] == track_ids
         known[hit] = prior.Xc[i[hit]]
-    translate = prior.v_body is not None
 
     def rays(px):
         xy = intrinsics.undistort_points(px)
@@ -90,8 +90,6 @@ def predictor(prior: MotionPrior, stamp_ns: int, T_base_cam: np.ndarray, intrins
         """Camera-frame points of the pixels (the known point, else the floor, else a
         direction), moved into the other camera (X_other = R_from^T (X - t_from))."""
         d = rays(px)
-        if not translate:
-            return d @ R_from               # directions only (R^T d, row-wise)
         X = own_known(rows, d)
         far = ~np.all(np.isfinite(X), axis=1)
         out = (X - t_from) @ R_from

@@ -204,10 +204,6 @@ def kitti_rig(cameras: List[KittiCamera], stereo: bool, height: float = CAMERA_H
                detect_stereo=False)
 
 
-def stereo_rig(baseline: float, height: float = CAMERA_HEIGHT_M) -> Rig:
-    return kitti_rig(rig_cameras(False, False, 2, 1.0, baseline), True, height)
-
-
 def base_poses(camera_poses, T_base_left):
     """Left-camera poses in the first camera frame -> base_link poses in odom (odom =
     base_link at the first frame)."""
