@@ -137,6 +137,12 @@ def test_should_rebalance_hysteresis():
     # one slow frame among normal ones: no migration
     d = should_rebalance([CAMS4] * 9 + [shifted], alloc8, 0.15, 10)
     assert not d.rebalance and '1/10' in d.reason
+    # one fast frame (a scheduler hiccup) among slow ones: the imbalance is still real
+    d = should_rebalance([shifted] * 4 + [CAMS4] + [shifted] * 5, alloc8, 0.15, 10)
+    assert d.rebalance and '9/10' in d.reason
+    # three of ten: not a trend
+    assert not should_rebalance([shifted] * 7 + [CAMS4] * 3, alloc8, 0.15, 10).rebalance
+    assert should_rebalance([shifted] * 7 + [CAMS4] * 3, alloc8, 0.15, 10, quorum=0.7).rebalance
     assert not should_rebalance([shifted] * 3, alloc8, 0.15, 10).rebalance   # not enough history
     assert max(evaluate_loads(alloc8, shifted).values()) > alloc8.makespan_ms
 

@@ -298,15 +298,22 @@ def frame_gain(quarter_costs, current: Allocation, threshold: float = 0.10, min_
     return best > 0 and cur > best * (1.0 + threshold) and cur - best > min_gain_ms, cur, best
 
 
+def frames_needed(hysteresis_frames: int, quorum: float) -> int:
+    """How many of the hysteresis window's frames must show the gain."""
+    return max(1, min(hysteresis_frames, math.ceil(quorum * hysteresis_frames - 1e-9)))
+
+
 def should_rebalance(costs_history: Sequence[Mapping[str, Sequence[float]]], current: Allocation,
                      threshold: float = 0.10, hysteresis_frames: int = 10,
                      nf_history: Optional[Sequence[Mapping[str, Sequence[int]]]] = None, min_f=None,
-                     min_gain_ms: float = 1.0, **cost_kw) -> RebalanceDecision:
-    """Move nodes only when, for each of the last `hysteresis_frames` frames, the current
-    allocation's makespan exceeds the best proposal's (best_proposal: a fresh allocation or
-    a few quarter moves) by more than `threshold` (relative) and `min_gain_ms`. The
-    hysteresis stops a single slow frame (a burst of feature extraction) from causing a
-    migration, which itself costs a state hand-over."""
+                     min_gain_ms: float = 1.0, quorum: float = 0.8, **cost_kw) -> RebalanceDecision:
+    """Move nodes only when, in at least `quorum` of the last `hysteresis_frames` frames and
+    on their mean costs, the current allocation's makespan exceeds the best proposal's
+    (best_proposal: a fresh allocation or a few quarter moves) by more than `threshold`
+    (relative) and `min_gain_ms`. The hysteresis stops a single slow frame (a burst of
+    feature extraction) from causing a migration, which itself costs a state hand-over; the
+    quorum stops a single fast one (a scheduler hiccup on a loaded machine) from holding a
+    real imbalance in place for another window."""
     if len(costs_history) < hysteresis_frames:
         return RebalanceDecision(False, f'{len(costs_history)} frames of history < {hysteresis_frames}')
     over = 0
@@ -315,13 +322,18 @@ def should_rebalance(costs_history: Sequence[Mapping[str, Sequence[float]]], cur
         nf = nf_history[-hysteresis_frames:][i] if nf_history else None
         gain, cur, best = frame_gain(qc, current, threshold, min_gain_ms, nf=nf, min_f=min_f, **cost_kw)
         over += gain
-    if over < hysteresis_frames:
+    if over < frames_needed(hysteresis_frames, quorum):
         return RebalanceDecision(False, f'gain above {threshold:.0%} in {over}/{hysteresis_frames} frames',
                                  cur, best, over)
     # propose from the mean recent costs, so that the new allocation fits the trend
     mean = {cam: [sum(h[cam][l] for h in costs_history[-hysteresis_frames:]) / hysteresis_frames
                   for l in range(QUARTERS)] for cam in current.cameras}
+    gain, cur, best = frame_gain(mean, current, threshold, min_gain_ms, nf=nf_history[-1] if nf_history
+                                 else None, min_f=min_f, **cost_kw)
+    if not gain:
+        return RebalanceDecision(False, f'gain on the mean costs of {hysteresis_frames} frames below '
+                                 f'{threshold:.0%}', cur, best, over)
     nf = nf_history[-1] if nf_history else None
     prop = best_proposal(current, mean, nf=nf, min_f=min_f, **cost_kw)
     return RebalanceDecision(True, f'current makespan {cur:.2f} ms > best {best:.2f} ms by more than '
-                             f'{threshold:.0%} for {hysteresis_frames} frames', cur, best, over, prop)
+                             f'{threshold:.0%} in {over}/{hysteresis_frames} frames', cur, best, over, prop)

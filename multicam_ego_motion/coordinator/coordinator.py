@@ -50,7 +50,7 @@ from typing import Callable, Dict, List, Optional
 from multicam_ego_motion import interrupt
 from multicam_ego_motion.coordinator import control
 from multicam_ego_motion.coordinator.allocation import (Allocation, allocate, evaluate_loads, frame_gain,
-                                                        should_rebalance)
+                                                        frames_needed, should_rebalance)
 from multicam_ego_motion.coordinator.cost_monitor import CostMonitor
 from multicam_ego_motion.coordinator.graph_spec import (graph_nodes, normalize_namespace, remappings, ros_args,
                                                         topic_parameter_values, under)
@@ -95,7 +95,8 @@ class CoordinatorStats:
 class Coordinator:
     def __init__(self, rig, rig_file, params_file=None, workers: int = None, overrides=None,
                  log_dir=None, env=None, rebalance: bool = True, threshold: float = 0.10,
-                 hysteresis_frames: int = 10, migrate_every: int = 0, spare: bool = True,
+                 hysteresis_frames: int = 10, quorum: float = 0.8, migrate_every: int = 0,
+                 spare: bool = True,
                  logger=print, namespace: str = '', listen: str = None, remote_workers: int = 0,
                  key: bytes = None, join_timeout_s: float = REMOTE_JOIN_TIMEOUT_S):
         self.rig = rig
@@ -124,6 +125,7 @@ class Coordinator:
         self.rebalance_enabled = rebalance and self.n_workers > 1
         self.threshold = threshold
         self.hysteresis_frames = hysteresis_frames
+        self.quorum = quorum
         self.migrate_every = int(migrate_every) if self.n_workers > 1 else 0
         self.logger = logger
         self.costs = CostMonitor(rig.names)
@@ -628,12 +630,12 @@ class Coordinator:
         if frame - self._last_rebalance_frame < 2 * self.hysteresis_frames:
             return                  # let the costs settle after a move
         flags = list(self._gains)
-        if len(flags) < self.hysteresis_frames or not all(
-                ok and version == self._placement_version for version, ok in flags):
+        if len(flags) < self.hysteresis_frames or any(v != self._placement_version for v, _ in flags) \
+                or sum(ok for _, ok in flags) < frames_needed(self.hysteresis_frames, self.quorum):
             return
         current = self.current_allocation()
         d = should_rebalance(list(self.costs.history), current, threshold=self.threshold,
-                             hysteresis_frames=self.hysteresis_frames, **self._cost_kw())
+                             hysteresis_frames=self.hysteresis_frames, quorum=self.quorum, **self._cost_kw())
         if not d.rebalance:
             return
         moves = [(k, w) for w, keys in d.proposal.workers.items() for k in keys
