@@ -24,6 +24,7 @@ from arbiter_node.quarter_fusion import CHI2_6DOF_999, information_fusion
 from arbiter_node.time_shift import shift_pose
 from arbiter_node.rig_motion_fit import fit_rig_motion
 from arbiter_node.rig_scale import RigScaleResult, relative_motion, scale_correction, solve_rig_translation
+from arbiter_node.road_motion import body_twist, camera_motion, rig_motion
 from arbiter_node.scale_state import ScaleState, metric_source
 from camera_pose_nodes.map_scale import scale_positions
 from camera_pose_nodes.pose_estimate import PoseEstimate
@@ -75,6 +76,13 @@ PARAMETERS = {
     'scale_snap_min_change': (0.01, 'scale_state: after the first rescale, rescale again when the scale moved this much (relative)', 0.0, 1.0),
     'scale_drift_per_sqrt_s': (0.01, 'scale_state: relative scale drift of a map without a scale source per sqrt(s) (the scale estimate\'s random walk)', 0.0, 1.0),
     'road_scale': (True, "over a road (the rig's floor_level false, no stereo pair): measure the map scale from each camera's road points between frames (their plane's homography, metric from the camera height whatever its pitch: road_plane) and rescale the map (scale_state)", None, None),
+    'road_twist': (True, "over a road (road_scale): each camera's motion between the two previous frames from all its tracks, rotation and direction from the essential matrix, length from the road's homography (road_motion), measures the body's twist before the cameras' poses are fused (without the road's length: the rotation only); independent of the quarters' maps, which break at car speed", None, None),
+    'road_twist_rotation_std_rad': (0.005, 'road_twist: std of the measured rotation between frames (rad)', 1e-5, 1.0),
+    'road_twist_direction_std_rad': (0.03, 'road_twist: std of the measured direction of travel (rad)', 1e-4, 1.0),
+    'road_twist_length_std': (0.3, 'road_twist: relative std of the step length from the road (one camera, two frames)', 1e-3, 10.0),
+    'road_twist_min_disagreement_deg': (0.75, "road_twist: used only where it differs from the filter's rotation by at least this per frame (deg): where the quarters' maps broke (at 5 Hz they turned 2-8 deg where a car turned 0.3); where the maps hold they measure the rotation as well and the length with it", 0.0, 45.0),
+    'road_twist_min_points': (30, 'road_twist: essential-matrix inliers a camera needs', 8, 10000),
+    'road_twist_min_parallax_deg': (0.3, 'road_twist: median rotation-compensated parallax a camera needs (deg; below it the direction is noise)', 0.0, 45.0),
     'road_scale_prior_std': (0.1, 'road_scale: the map scale\'s relative std at the start (the road points of one frame are metric to about the camera\'s pitch to the road)', 1e-3, 10.0),
     'road_scale_std': (0.3, 'road_scale: relative std of one observation (one camera, two frames; single fits scatter by about this)', 1e-3, 10.0),
     'road_scale_threshold': (2.5, 'road_scale: RANSAC threshold of the road homography, in point stds', 0.5, 20.0),
@@ -225,6 +233,7 @@ class GeneralFusion:
         self.last_stamp_ns = stamp_ns if self.last_stamp_ns is None else max(stamp_ns, self.last_stamp_ns)
         T_prev = self.last_T
 
+        road_twists = self._road_twist() if self.has_tracked else 0
         prior = (self.ekf.T, self.ekf.pose_covariance) if p['median_use_prior'] and self.has_tracked else None
         shift_twist = (self.ekf.twist, self.ekf.twist_covariance)
         camera_estimates = self._with_floor(self._to_common_time(stamp_ns, camera_estimates, *shift_twist))
@@ -288,9 +297,9 @@ class GeneralFusion:
             sd = p['planar_twist_std']
             self.ekf.update_twist(np.zeros(6), np.eye(6) * sd * sd, axes=(2, 3, 4))
 
-        if camera_update or wheel_used or tracks_update:
+        if camera_update or wheel_used or tracks_update or road_twists:
             self.last_support_ns = stamp_ns
-        if camera_update or tracks_update:
+        if camera_update or tracks_update or road_twists:
             state = 'tracking'
         elif not self.has_tracked:
             state = 'initializing'
@@ -379,6 +388,40 @@ class GeneralFusion:
         # x4: single fits scatter about twice their predicted std (docs/fusion.md, scale)
         used, _ = self.ekf.update_twist(np.r_[fit.t, rotvec] / dt, 4.0 * cov / dt ** 2)
         return used
+
+    def _road_twist(self) -> int:
+        """road_twist: every camera's motion between the two previous frames (this frame's
+        tracks may still be on their way) as a twist measurement. Returns how many were used."""
+        p = self.params
+        if not (p['road_twist'] and self.rig.road_scale and self.wants_bearings()) or len(self.frames) < 2:
+            return 0
+        (s0, c0), (s1, c1) = self.frames
+        dt = (s1 - s0) * 1e-9
+        if dt <= 0.0:
+            return 0
+        tracks, motions = [], []
+        for cam, tr in zip(self.rig.cameras, self.scale.tracks_between(c0, c1, s0, s1, by_camera=True)):
+            if tr is None:
+                continue
+            sigma = float(np.median(tr.sigma))
+            m = camera_motion(tr, float(cam.translation[2] - self.rig.floor_z), 2.0 * sigma,
+                              p['road_twist_min_points'], p['road_twist_min_parallax_deg'],
+                              p['road_scale_threshold'] * sigma, p['road_scale_min_step_m'])
+            tracks.append(tr)
+            if m is not None:
+                motions.append((tr, m))
+        prior = se3.make_T(se3.rotvec_to_R(self.ekf.twist[3:] * dt), self.ekf.twist[:3] * dt)
+        motion = rig_motion(tracks, motions, prior, p['road_twist_min_points'])
+        if motion is None:
+            return 0
+        twist, cov = body_twist(motion, dt, p['road_twist_direction_std_rad'], p['road_twist_length_std'])
+        if np.linalg.norm(twist[3:] - self.ekf.twist[3:]) * dt < np.radians(p['road_twist_min_disagreement_deg']):
+            return 0
+        # without the road's length, the rotation only: a direction with a length from the
+        # filter's own speed held a car that started at rest at rest
+        axes = (0, 1, 2, 3, 4, 5) if motion.length_known else (3, 4, 5)
+        ok, _ = self.ekf.update_twist(twist, cov, axes=axes, gate_chi2=p['ekf_gate_chi2'])
+        return int(ok)
 
     def wants_bearings(self) -> bool:
         """Whether the quarters' tracks can tell this fusion anything: the scale is measured

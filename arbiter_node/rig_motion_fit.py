@@ -72,16 +72,17 @@ def _residuals(x, R0, cameras: Sequence[CameraTracks]):
 
 
 def fit_rig_motion(R0: np.ndarray, t0: np.ndarray, cameras: List[CameraTracks],
-                   min_points: int = 30, inlier_sigmas: float = 3.0) -> RigMotionFit:
+                   min_points: int = 30, inlier_sigmas: float = 3.0, min_cameras: int = 2) -> RigMotionFit:
     """(R, t) of the body from frame a to b, metric; R0, t0: a start (the fused motion, t0 in
     any scale, not zero). relative_std from the Jacobian at the inliers, scaled by their
-    residual RMS (in point stds)."""
+    residual RMS (in point stds). min_cameras 1: for the rotation alone (one camera's |t| is
+    not metric)."""
     cameras = [c for c in cameras if len(c.xa)]
     n = sum(len(c.xa) for c in cameras)
     fail = RigMotionFit(np.asarray(R0, float), np.zeros(3), float('inf'), np.eye(6) * 1e6, n, 0,
                         float('nan'), False)
-    if len(cameras) < 2:
-        fail.reason = f'{len(cameras)} camera(s) with tracks in both frames; need 2'
+    if len(cameras) < min_cameras:
+        fail.reason = f'{len(cameras)} camera(s) with tracks in both frames; need {min_cameras}'
         return fail
     if n < min_points:
         fail.reason = f'{n} tracks in both frames; need {min_points}'
