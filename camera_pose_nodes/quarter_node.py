@@ -25,14 +25,15 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_msgs.msg import Int64MultiArray
 
 from camera_pose_nodes import kernel
 from camera_pose_nodes.camera_model import intrinsics_from_msg
 from camera_pose_nodes.frame_schedule import FrameSchedule, ScheduleBook
 from camera_pose_nodes.map_scale import MapScaleCommand
-from camera_pose_nodes.image_conversion import bgr8_message, image_msg_to_gray
+from camera_pose_nodes.decoded_images import SHARED as DECODED
+from camera_pose_nodes.image_conversion import bgr8_message
 from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, QuarterParams
 from multicam_ego_motion.ros_plumbing import diagnostics
 from multicam_ego_motion.ros_plumbing.bearing_messages import bearings_to_msg
@@ -48,6 +49,7 @@ from multicam_ego_motion.geometry.rig import load_rig
 # executor rebuild its wait set over all of the worker's entities, so poll slowly.
 POLL_PERIOD_S = 0.1
 FUSED_AHEAD_KEPT = 4            # fused poses held for frames whose image has not come yet
+IMAGE_TYPES = {'raw': Image, 'compressed': CompressedImage}   # a camera's transport (rig)
 
 NODE_PARAMETERS = {
     'camera': ('front', 'name of the camera in the rig file', None, None),
@@ -139,10 +141,12 @@ class QuarterNode(Node):
         # (the schedule first: an executor takes ready subscriptions in creation order)
         self.inputs = {p['frame_schedule_topic']: (Int64MultiArray, LATCHED, self.on_schedule),
                        p['map_scale_topic']: (Int64MultiArray, LATCHED, self.on_map_scale),
-                       self.camera.image_topic: (Image, image_qos(p['image_qos']), self.on_image),
+                       self.camera.input_topic: (IMAGE_TYPES[self.camera.transport],
+                                                 image_qos(p['image_qos']), self.on_image),
                        p['fused_pose_topic']: (PoseWithCovarianceStamped, RELIABLE, self.on_fused)}
         if self.partner is not None:
-            self.inputs[self.partner.image_topic] = (Image, image_qos(p['image_qos']), self.on_partner_image)
+            self.inputs[self.partner.input_topic] = (IMAGE_TYPES[self.partner.transport],
+                                                     image_qos(p['image_qos']), self.on_partner_image)
         if not shared_inputs:
             for topic, (msg_type, qos, callback) in self.inputs.items():
                 self.create_subscription(msg_type, topic, callback, qos)
@@ -150,7 +154,7 @@ class QuarterNode(Node):
         self.partner_info_sub = (None if self.partner is None else self.create_subscription(
             CameraInfo, self.partner.camera_info_topic, self.on_partner_info, RELIABLE))
         self.poll_timer = self.create_timer(POLL_PERIOD_S, self.poll)
-        self.get_logger().info(f'{self.source}: waiting for {self.camera.image_topic} '
+        self.get_logger().info(f'{self.source}: waiting for {self.camera.input_topic} '
                                f'({kernel.selected()} kernel)')
 
     # --- inputs -------------------------------------------------------------------------
@@ -282,7 +286,7 @@ class QuarterNode(Node):
             if not timed_out:
                 return
             what = (f'CameraInfo on {self.partner.camera_info_topic}' if self.partner_intrinsics is None
-                    else f'image on {self.partner.image_topic}')
+                    else f'image on {self.partner.input_topic}')
             self.get_logger().warning(
                 f'{self.source}: no stereo partner {what} for frame {stamp_ns / 1e9:.6f} s after '
                 f'{self.partner_timeout_s} s: fused pose applied without stereo matches')
@@ -291,10 +295,11 @@ class QuarterNode(Node):
         gray = image if isinstance(image, np.ndarray) else None
         if gray is None and image is not None and self.partner_intrinsics is not None:
             try:
-                gray = image_msg_to_gray(image, expected_size=(self.partner_intrinsics.width,
-                                                               self.partner_intrinsics.height))
+                gray = self.gray(self.partner, image, (self.partner_intrinsics.width,
+                                                       self.partner_intrinsics.height))
             except (UserError, ValueError) as e:
-                self.get_logger().error(f'{self.source}: stereo partner image rejected: {e}',
+                self.get_logger().error(f'{self.source}: stereo partner image on '
+                                        f'{self.partner.input_topic} rejected: {e}',
                                         throttle_duration_sec=5.0)
         for k in [k for k in self.partner_images if k <= stamp_ns]:
             del self.partner_images[k]
@@ -396,10 +401,16 @@ class QuarterNode(Node):
         msg = self.pending[0][1]
         stamp_ns = stamp_to_ns(msg.header.stamp)
         try:
-            gray = image_msg_to_gray(msg, expected_size=self.estimator.image_size)
+            gray = self.gray(self.camera, msg, self.estimator.image_size)
             self.estimator.prefetch(stamp_ns, gray)
         except (UserError, ValueError):
             pass              # process() reports it when the image's turn comes
+
+    @staticmethod
+    def gray(camera, msg, expected_size):
+        """The image as gray, decoded once for every quarter of this process (decoded_images)."""
+        return DECODED.gray(camera.input_topic, stamp_to_ns(msg.header.stamp), msg, expected_size,
+                            camera.mono16_bits)
 
     def report_stale(self, msg, stamp_ns):
         # A duplicate or late image would run the tracker and the filter backwards in time.
@@ -415,10 +426,11 @@ class QuarterNode(Node):
         gray = None
         if not self.estimator.prefetched(stamp_ns):
             try:
-                gray = image_msg_to_gray(msg, expected_size=self.estimator.image_size)
+                gray = self.gray(self.camera, msg, self.estimator.image_size)
             except (UserError, ValueError) as e:
-                self.get_logger().error(f'{self.source}: image rejected: {e}', throttle_duration_sec=5.0)
-                self.publish_diag(msg.header.stamp, 'error', f'image rejected: {e}')
+                self.get_logger().error(f'{self.source}: image on {self.camera.input_topic} rejected: {e}',
+                                        throttle_duration_sec=5.0)
+                self.publish_diag(msg.header.stamp, 'error', f'image on {self.camera.input_topic} rejected: {e}')
                 return
         est = self.estimator.process_image(stamp_ns, gray)
         self.last_processed_ns = stamp_ns
@@ -490,7 +502,7 @@ class QuarterNode(Node):
         out = {}
         for k, m in self.partner_images.items():
             try:
-                out[k] = m if isinstance(m, np.ndarray) else image_msg_to_gray(m, expected_size=size)
+                out[k] = m if isinstance(m, np.ndarray) else self.gray(self.partner, m, size)
             except (UserError, ValueError):
                 pass
         return out

@@ -59,7 +59,7 @@ def run(args) -> int:
     params_file = Path(args.params) if args.params else default_params()
     qp = quarter_params_from(params_file)
     fp = fusion_params_from(params_file)
-    present = [c for c in rig.cameras if c.image_topic in reader.topics]
+    present = [c for c in rig.cameras if c.input_topic in reader.topics]
     runs = [('fused (whole rig)', rig, (1, 2, 3, 4))]
     runs += [(c.name, replace(rig, cameras=[c]), (1, 2, 3, 4)) for c in present]
     if not args.no_quarters:

@@ -7,6 +7,7 @@ ground truth DIR/report.md with plots.
 """
 import os
 import signal
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -83,20 +84,33 @@ def resolve_rig(bag_reader, rig_arg):
         rig = load_rig(path)
     else:
         rig, path = rig_from_bag(bag_reader), None
-    return with_detected_stereo_pairs(bag_reader, rig, path)
+    found = with_detected_stereo_pairs(bag_reader, with_bag_transports(bag_reader, rig))
+    if found is rig or path is None:
+        return found, path
+    # the nodes read the rig file: a rig completed from the bag goes to a new file
+    out = Path(tempfile.mkdtemp(prefix='ego_motion_rig_')) / 'rig.yaml'
+    found.save(out)
+    return found, out
 
 
-def with_detected_stereo_pairs(bag_reader, rig, path):
+def with_bag_transports(bag_reader, rig):
+    """Each camera's images as the bag has them, raw or compressed (bag/image_transport.py)."""
+    from multicam_ego_motion.bag.image_transport import with_bag_transports as choose
+    rig, said = choose(bag_reader, rig)
+    for line in said:
+        print(f'rig: {line}', flush=True)
+    return rig
+
+
+def with_detected_stereo_pairs(bag_reader, rig):
     """A rig that names no stereo_pairs gets those found from its extrinsics and the bag's
-    first CameraInfo of each camera (stereo_match.overlapping_pairs); the nodes read the rig
-    file, so a rig that gained pairs is written to a new file (returned with it)."""
-    import tempfile
+    first CameraInfo of each camera (stereo_match.overlapping_pairs)."""
     from dataclasses import replace
 
     from camera_pose_nodes.camera_model import intrinsics_from_msg
     from camera_pose_nodes.stereo_match import overlapping_pairs
     if not rig.detect_stereo or rig.stereo_pairs or len(rig.cameras) < 2:
-        return rig, path
+        return rig
     topics = {c.camera_info_topic: c.name for c in rig.cameras if c.camera_info_topic in bag_reader.topics}
     intrinsics = {}
     for topic, msg, _ in bag_reader.decoded(list(topics)):
@@ -110,27 +124,18 @@ def with_detected_stereo_pairs(bag_reader, rig, path):
             break
     pairs = overlapping_pairs(rig, intrinsics)
     if not pairs:
-        return rig, path
-    rig = replace(rig, stereo_pairs=pairs)
+        return rig
     print(f'rig: overlapping cameras found: stereo pairs {", ".join("/".join(p) for p in pairs)} '
           '(name stereo_pairs in the rig file to choose)', flush=True)
-    if path is None:
-        return rig, None
-    out = Path(tempfile.mkdtemp(prefix='ego_motion_rig_')) / 'rig.yaml'
-    rig.save(out)
-    return rig, out
-
-
-CAMERA_TOPIC_TYPES = (('image_topic', 'sensor_msgs/msg/Image'),
-                      ('camera_info_topic', 'sensor_msgs/msg/CameraInfo'))
+    return replace(rig, stereo_pairs=pairs)
 
 
 def check_camera_topic_types(reader, rig):
     """A camera topic of another type would never match the nodes' subscriptions and the
     lockstep player would wait for them in vain: reject the bag before the graph starts."""
     for cam in rig.cameras:
-        for attr, expected in CAMERA_TOPIC_TYPES:
-            topic = getattr(cam, attr)
+        for topic, expected in ((cam.input_topic, cam.input_type),
+                                (cam.camera_info_topic, 'sensor_msgs/msg/CameraInfo')):
             found = reader.topics.get(topic)
             if found is not None and found != expected:
                 raise UserError(f'bag {reader.path}: {topic} holds {found or "messages of no known type"}, '
@@ -177,7 +182,7 @@ def detected_sync_window(reader, rig, params):
     from multicam_ego_motion.params_file import sync_window_from
     if sync_window_from(params) > 0:
         return None
-    window, said = bag_capture_spread(reader, [c.image_topic for c in rig.cameras]).verdict()
+    window, said = bag_capture_spread(reader, [c.input_topic for c in rig.cameras]).verdict()
     if said:
         print(f'replay: {said} (--sync-window sets another)' if window else f'replay: warning: {said}',
               flush=True)
@@ -201,13 +206,13 @@ def wait_for_graph(node, rig, bag_reader, coordinator, timeout_s=60.0):
     quarter to its CameraInfo (one missed with the first frames left a camera out of them:
     seen with two frames in flight), and the general arbiter up."""
     deadline = time.monotonic() + timeout_s
-    present = [c for c in rig.cameras if c.image_topic in bag_reader.topics]
+    present = [c for c in rig.cameras if c.input_topic in bag_reader.topics]
     quarters = {c.name: sum(1 for s in coordinator.specs.values()
                             if s.kind == 'quarter' and s.parameters.get('camera') == c.name)
                 for c in present}
     while time.monotonic() < deadline:
         coordinator.check_alive()
-        ok = all(node.count_subscribers(c.image_topic) >= coordinator.image_readers(c.name)
+        ok = all(node.count_subscribers(c.input_topic) >= coordinator.image_readers(c.name)
                  and node.count_subscribers(c.camera_info_topic) >= quarters[c.name]
                  for c in present)
         ok = ok and node.count_publishers('/odom') >= 1
@@ -276,7 +281,7 @@ def make_link_waiter(rig, player, timeout_s=2.0):
     def wait(spec, phase, readers):
         if spec['kind'] != 'quarter':
             return
-        topic = rig.camera(spec['parameters']['camera']).image_topic
+        topic = rig.camera(spec['parameters']['camera']).input_topic
         ok = ((lambda: player.subscription_count(topic) <= readers) if phase == 'detached'
               else (lambda: player.subscription_count(topic) >= readers))
         deadline = time.monotonic() + timeout_s
@@ -444,7 +449,7 @@ def run(args) -> int:
     reader = Rosbag2Reader(args.bag)
     rig, rig_file = resolve_rig(reader, args.rig)
     check_camera_topic_types(reader, rig)
-    missing = [c.name for c in rig.cameras if c.image_topic not in reader.topics]
+    missing = [c.name for c in rig.cameras if c.input_topic not in reader.topics]
     if len(missing) == len(rig.cameras):
         raise UserError(f'bag {args.bag} has none of the rig\'s image topics')
     out.mkdir(parents=True, exist_ok=True)

@@ -47,19 +47,19 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
     what one quarter alone achieves). `sync_window_s`: the general arbiter's frame window."""
     window_ns = int(round(sync_window_s * 1e9))
     reader = Rosbag2Reader(bag_path)
-    present = [c for c in rig.cameras if c.image_topic in reader.topics]
+    present = [c for c in rig.cameras if c.input_topic in reader.topics]
     if not present:
         raise UserError(f'bag {bag_path} has none of the rig\'s image topics '
-                        f'({", ".join(c.image_topic for c in rig.cameras)})')
+                        f'({", ".join(c.input_topic for c in rig.cameras)})')
     qp = QuarterParams(**(quarter_params or {}))
     fusion = GeneralFusion(rig, fusion_params or {})
     sends_bearings = rig.sends_bearings     # as the quarter nodes
-    topics = [c.image_topic for c in present] + [c.camera_info_topic for c in present
+    topics = [c.input_topic for c in present] + [c.camera_info_topic for c in present
                                                   if c.camera_info_topic in reader.topics]
     wheel_topic = '/wheel/odom' if use_wheel and '/wheel/odom' in reader.topics else None
     if wheel_topic:
         topics.append(wheel_topic)
-    by_topic = {c.image_topic: c for c in present}
+    by_topic = {c.input_topic: c for c in present}
     info_topic = {c.camera_info_topic: c for c in present}
     estimators = {}   # camera name -> [QuarterEstimator x4]
     intrinsics = {}   # camera name -> its first CameraInfo's intrinsics
@@ -83,7 +83,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
         for name, msg in sorted(frame.items(), key=lambda kv: rig.names.index(kv[0])):
             if name not in estimators:
                 continue
-            gray = image_msg_to_gray(msg, expected_size=estimators[name][0].image_size)
+            gray = image_msg_to_gray(msg, estimators[name][0].image_size, rig.camera(name).mono16_bits)
             ests = [q.process_image(frame_stamps[name], gray) for q in estimators[name]]
             if sends_bearings:
                 # as the quarter nodes publish them; fused from the next frame on
@@ -121,7 +121,8 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
                     if partner in frame and frame_stamps[partner] == stamp:
                         if partner not in partner_gray:
                             size = (intrinsics[partner].width, intrinsics[partner].height)
-                            partner_gray[partner] = image_msg_to_gray(frame[partner], expected_size=size)
+                            partner_gray[partner] = image_msg_to_gray(frame[partner], size,
+                                                                      rig.camera(partner).mono16_bits)
                         gray_b = partner_gray[partner]
                 for q in qs:
                     if q.takes_feedback(stamp):

@@ -84,14 +84,12 @@ def _set_pixels(msg, gray, encoding='mono8', bytes_per_pixel=1):
 # ---- image faults ----------------------------------------------------------------------
 
 def encoding(camera, name):
-    """Re-encode the camera's mono8 images as yuv422 (UYVY) or 16UC1, pixel for pixel."""
+    """Re-encode the camera's mono8 images as 32FC1 or 16UC1 (encodings the graph does not
+    read), pixel for pixel."""
     def change(msg):
         g = _pixels(msg)
-        if name == 'yuv422':
-            uyvy = np.empty((g.shape[0], g.shape[1] * 2), np.uint8)
-            uyvy[:, 0::2] = 128   # U/V: no colour
-            uyvy[:, 1::2] = g     # Y
-            _set_pixels(msg, uyvy, 'yuv422', 2)
+        if name == '32FC1':
+            _set_pixels(msg, g.astype('<f4').view(np.uint8), '32FC1', 4)
         elif name == '16UC1':
             _set_pixels(msg, (g.astype('<u2') * 256).view(np.uint8), '16UC1', 2)
         else:

@@ -19,7 +19,7 @@ FRAMES = SECONDS * 8
 
 # Camera faults that leave at least one camera working at every moment.
 CAMERA_FAULTS = dict(
-    yuv_camera='front',              # yuv422 for the whole run
+    float_camera='front',            # 32FC1 (a depth image's encoding) for the whole run
     mono16_camera='left',            # 16UC1 for the whole run
     resized_camera='back', resized=(1.0, 2.0),   # 160x120 images, CameraInfo says 320x240
     stopped_camera='right', stopped=(2.5, 4.0),  # no image, no CameraInfo, then back
@@ -56,7 +56,7 @@ def clean_run(fault_dir):
 def camera_faults_run(fault_dir):
     c = CAMERA_FAULTS
     bag = fi.rewrite_bag(fault_dir / 'camera_faults', SECONDS,
-                         fi.encoding(c['yuv_camera'], 'yuv422'),
+                         fi.encoding(c['float_camera'], '32FC1'),
                          fi.encoding(c['mono16_camera'], '16UC1'),
                          fi.resize(c['resized_camera'], 160, 120, *c['resized']),
                          fi.stop_stream(c['stopped_camera'], *c['stopped']))

@@ -161,3 +161,22 @@ def test_each_graph_run_is_compared_with_the_sequential_runs_around_it():
     assert math.isclose(d.ceiling, 33.0 / (36.0 / 2))
     # M = 1: 33 / 33 = 1.0 against 36 / 39.6 = 0.91: the first, with its own sequential runs
     assert d.best[1][0] == 33.0 and d.sequential_around(1) == (33.0, 33.0)
+
+
+def test_decode_cost_row_per_input_kind():
+    """The bench's decode table: one row per input kind, each input one the graph reads as
+    the scene's gray image (what is timed is the real conversion, not a failure)."""
+    import cv2
+    import numpy as np
+    from camera_pose_nodes.image_conversion import image_msg_to_gray
+    from multicam_ego_motion.bench import decode_cost
+    gray = cv2.cvtColor(decode_cost.scene(), cv2.COLOR_BGR2GRAY).astype(float)
+    kinds = decode_cost.inputs()
+    for name, msg in kinds:
+        g = image_msg_to_gray(msg, (640, 480)).astype(float)
+        assert np.abs(g - gray)[4:-4, 4:-4].mean() < 3.0, name
+    rows = decode_cost.measure(repeats=1)
+    assert [r[0] for r in rows] == [k for k, _ in kinds]
+    text = '\n'.join(decode_cost.lines(rows))
+    for name, size, ms in rows:
+        assert f'| {name} | {size} | {ms:.2f} |' in text

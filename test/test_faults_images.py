@@ -50,13 +50,13 @@ def assert_recovered_drift(run, clean_run, t_from, factor=2.0):
     assert fault <= max(factor * clean, DRIFT_FLOOR_M), (fault, clean)
 
 
-# ---- camera faults (one replay: yuv422, 16UC1, wrong size for 1 s, a stream that stops) ----
+# ---- camera faults (one replay: 32FC1, 16UC1, wrong size for 1 s, a stream that stops) ----
 
 def test_camera_faults_leave_the_rest_running(camera_faults_run):
     assert_odometry_sane(camera_faults_run)
 
 
-@pytest.mark.parametrize('camera,encoding', [(CAMERA_FAULTS['yuv_camera'], 'yuv422'),
+@pytest.mark.parametrize('camera,encoding', [(CAMERA_FAULTS['float_camera'], '32FC1'),
                                              (CAMERA_FAULTS['mono16_camera'], '16UC1')])
 def test_unknown_encoding_is_reported_for_that_camera(camera_faults_run, camera, encoding):
     diags = quarter_diags(camera_faults_run, camera)

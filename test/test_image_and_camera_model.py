@@ -19,7 +19,7 @@ def test_encodings_to_gray():
 
 
 @pytest.mark.parametrize('args, msg', [
-    (('mono16', 4, 6, 12, bytes(48)), "'mono16' is not supported"),
+    (('32FC1', 4, 6, 24, bytes(96)), "'32FC1' is not supported"),
     (('mono8', 4, 6, 6, bytes(20)), 'expected height\\*step'),
     (('mono8', 4, 6, 6, bytes(24), (640, 480)), 'CameraInfo says 640x480'),
 ])

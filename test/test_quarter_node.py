@@ -124,3 +124,55 @@ def test_a_fused_pose_that_comes_before_its_image_is_applied_after_it(rclpy_cont
     finally:
         node.estimator.close()
         node.destroy_node()
+
+
+def test_four_quarters_of_a_worker_decode_each_compressed_image_once(rclpy_context, tmp_path):
+    """A camera whose transport is `compressed`: its four quarters in one process (a
+    worker's shared feed hands each the same message) decode each JPEG once, and each
+    estimates its frame from it; a corrupt JPEG is decoded once and reported by each
+    quarter, naming the topic, and the next image goes on."""
+    import cv2
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import CompressedImage
+
+    from camera_pose_nodes.decoded_images import SHARED
+    from camera_pose_nodes.image_conversion import image_msg_to_gray
+    from camera_pose_nodes.quarter_node import QuarterNode
+    from multicam_ego_motion.geometry.rig import load_rig
+    rig = load_rig(REPO / 'bags' / 'default' / 'rig.yaml')
+    rig.cameras[0].transport = 'compressed'
+    rig.save(tmp_path / 'rig.yaml')
+    info, images = _front_frames(3)
+
+    def jpeg(m, data=None):
+        ok, enc = cv2.imencode('.jpg', image_msg_to_gray(m), [cv2.IMWRITE_JPEG_QUALITY, 90])
+        return CompressedImage(header=m.header, format='mono8; jpeg compressed mono8',
+                               data=enc.tobytes() if data is None else data)
+    compressed = [jpeg(images[0]), jpeg(images[1], b'\xff\xd8\xff corrupt'), jpeg(images[2])]
+    stamps = [stamp_to_ns(m.header.stamp) for m in images]
+    nodes, processed, errors = [], [], []
+    for q in range(1, 5):
+        node = QuarterNode(shared_inputs=True, parameter_overrides=[
+            Parameter('camera', value='front'), Parameter('quarter', value=q),
+            Parameter('rig_file', value=str(tmp_path / 'rig.yaml'))])
+        assert '/front/image_raw/compressed' in node.inputs
+        node.estimate_sink = lambda msg: processed.append(stamp_to_ns(msg.header.stamp))
+        node.diag_sink = lambda stamp, status: errors.append(status.message) if status.level == b'\x02' else None
+        node.on_info(info)
+        nodes.append(node)
+    try:
+        before = SHARED.decodes
+        for k, msg in enumerate(compressed):
+            for node in nodes:
+                node.on_image(msg)
+            if k < 2:
+                for node in nodes:
+                    node.on_fused(fused_msg(stamps[k], 0.1 * k))
+        assert SHARED.decodes - before == 3                 # one per image, not per quarter
+        assert processed == [stamps[0]] * 4 + [stamps[2]] * 4
+        assert len(errors) == 4 and all('/front/image_raw/compressed' in e and 'could not be decoded' in e
+                                        for e in errors), errors
+    finally:
+        for node in nodes:
+            node.estimator.close()
+            node.destroy_node()

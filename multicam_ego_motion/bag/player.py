@@ -7,7 +7,7 @@ Two modes:
   `ros2 bag play --rate R`. Used to measure real-time behaviour, latency and drops.
 * lockstep (`--lockstep`): frames are published as fast as the graph finishes them. After
   each *trigger frame* (a frame holding a message on a lockstep topic; default: every
-  `*/image_raw` topic) the player waits for the graph's acknowledgement on `--ack-topic`:
+  `*/image_raw` and `*/image_raw/compressed` topic) the player waits for the graph's acknowledgement on `--ack-topic`:
   a message whose header.stamp is at or after the frame's stamp (the newest header stamp
   among the frame's trigger messages), or, for an ack type without a header, any message
   received after the frame was published. No acknowledgement within `--ack-timeout` is an
@@ -66,7 +66,8 @@ from typing import Callable, Dict, Iterable, Iterator, List, Optional
 from multicam_ego_motion.bag.rosbag2_reader import BagMessage, Rosbag2Reader
 from multicam_ego_motion.errors import UserError
 
-DEFAULT_LOCKSTEP_PATTERN = '*/image_raw'
+# camera images, raw or image_transport's compressed
+DEFAULT_LOCKSTEP_PATTERNS = ('*/image_raw', '*/image_raw/compressed')
 NS_PER_S = 1_000_000_000
 MATCH_SETTLE_S = 0.2
 REPUBLISH_PERIOD_S = 0.5
@@ -93,7 +94,7 @@ class PlayOptions:
     lockstep_depth: int = 1
     # lockstep: a frame not acknowledged after this long lets the next one out (STALL_S; 0: never)
     stall_ahead_s: float = STALL_S
-    lockstep_topics: Optional[List[str]] = None   # bag topic names; None: every */image_raw
+    lockstep_topics: Optional[List[str]] = None   # bag topic names; None: every */image_raw(/compressed)
     sync_window_s: float = 0.0    # lockstep: a frame spans this much log time (free-running cameras)
     remap: Dict[str, str] = field(default_factory=dict)  # bag topic -> published topic
     start_offset_s: float = 0.0
@@ -259,9 +260,9 @@ class BagPlayer:
             if missing:
                 raise UserError(f'lockstep topic(s) not played: {", ".join(missing)}')
             return list(opts.lockstep_topics)
-        found = [t for t in self.topics if fnmatchcase(t, DEFAULT_LOCKSTEP_PATTERN)]
+        found = [t for t in self.topics if any(fnmatchcase(t, p) for p in DEFAULT_LOCKSTEP_PATTERNS)]
         if not found:
-            raise UserError(f'lockstep: no {DEFAULT_LOCKSTEP_PATTERN} topic among the played '
+            raise UserError(f'lockstep: no {" or ".join(DEFAULT_LOCKSTEP_PATTERNS)} topic among the played '
                             'topics; name the trigger topics with --lockstep-topics')
         return found
 
@@ -545,7 +546,7 @@ def configure_parser(parser: argparse.ArgumentParser):
                              f'frame out, up to {STALL_AHEAD_FRAMES} more (a sample stuck in the transport '
                              f'comes with the next one; default {STALL_S:g}, 0: never)')
     parser.add_argument('--lockstep-topics', nargs='+', metavar='TOPIC',
-                        help=f'lockstep trigger topics (default: every {DEFAULT_LOCKSTEP_PATTERN})')
+                        help=f'lockstep trigger topics (default: every {" and ".join(DEFAULT_LOCKSTEP_PATTERNS)})')
     parser.add_argument('--sync-window', type=float, default=0.0, metavar='S',
                         help='lockstep, free-running cameras: images within S seconds of a '
                              'frame\'s first are one frame (the general arbiter\'s sync_window_s; '

@@ -1,6 +1,9 @@
 """The bag layout every camera-rig bag of this project has, for synthetic and imported data:
 
-  /<cam>/image_raw    sensor_msgs/Image (mono8), frame <cam>_optical, one per frame
+  /<cam>/image_raw    sensor_msgs/Image (mono8), frame <cam>_optical, one per frame; for a
+                      camera whose rig transport is `compressed`, sensor_msgs/CompressedImage
+                      on /<cam>/image_raw/compressed instead (JPEG or PNG, image_transport's
+                      format string "mono8; jpeg compressed mono8")
   /<cam>/camera_info  sensor_msgs/CameraInfo (plumb_bob), with every image
   /tf_static          tf2_msgs/TFMessage: base_link -> each <cam>_optical, once at the start
   /ground_truth/odom  nav_msgs/Odometry odom -> base_link, pose in odom, twist in base_link
@@ -10,6 +13,7 @@ All images of a frame carry the same header stamp (free-running cameras: each im
 capture instant, the frame being whichever images were written together); the log time of
 every message is its header stamp.
 """
+import cv2
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
@@ -47,14 +51,22 @@ def quaternion(R):
                                               w=float(q[3]))
 
 
+IMAGE_CODECS = ('jpeg', 'png')
+
+
 class RigBagWriter:
-    def __init__(self, path, rig, intrinsics: dict, compression: str = 'zstd'):
-        """`intrinsics`: camera name -> CameraIntrinsics."""
+    def __init__(self, path, rig, intrinsics: dict, compression: str = 'zstd',
+                 image_codec: str = 'jpeg', jpeg_quality: int = 90):
+        """`intrinsics`: camera name -> CameraIntrinsics; `image_codec` (IMAGE_CODECS) and
+        `jpeg_quality` for the cameras whose transport is `compressed`."""
         self.rig = rig
         self.intrinsics = intrinsics
+        if image_codec not in IMAGE_CODECS:
+            raise ValueError(f'image codec {image_codec!r} (one of {IMAGE_CODECS})')
+        self.image_codec, self.jpeg_quality = image_codec, int(jpeg_quality)
         self.bag = Rosbag2Writer(path, compression=compression)
         for cam in rig.cameras:
-            self.bag.add_topic(cam.image_topic, 'sensor_msgs/msg/Image')
+            self.bag.add_topic(cam.input_topic, cam.input_type)
             self.bag.add_topic(cam.camera_info_topic, 'sensor_msgs/msg/CameraInfo')
 
     def _write(self, topic, typename, msg, time_ns):
@@ -83,12 +95,25 @@ class RigBagWriter:
             if cam.name not in images:
                 continue
             img = np.ascontiguousarray(images[cam.name], dtype=np.uint8)
-            msg = _T['sensor_msgs/msg/Image'](
-                header=header(time_ns, cam.frame_id), height=img.shape[0], width=img.shape[1],
-                encoding='mono8', is_bigendian=0, step=img.shape[1], data=img.ravel())
-            self._write(cam.image_topic, 'sensor_msgs/msg/Image', msg, time_ns)
+            if cam.transport == 'compressed':
+                msg = self.compressed(img, header(time_ns, cam.frame_id))
+            else:
+                msg = _T['sensor_msgs/msg/Image'](
+                    header=header(time_ns, cam.frame_id), height=img.shape[0], width=img.shape[1],
+                    encoding='mono8', is_bigendian=0, step=img.shape[1], data=img.ravel())
+            self._write(cam.input_topic, cam.input_type, msg, time_ns)
             self._write(cam.camera_info_topic, 'sensor_msgs/msg/CameraInfo',
                         camera_info(self.intrinsics[cam.name], cam.frame_id, time_ns), time_ns)
+
+    def compressed(self, img, head):
+        """A CompressedImage of the mono8 `img`, as image_transport's compressed plugin
+        writes it (deterministic: the same image gives the same bytes)."""
+        params = [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality] if self.image_codec == 'jpeg' else []
+        ok, data = cv2.imencode('.jpg' if self.image_codec == 'jpeg' else '.png', img, params)
+        if not ok:
+            raise ValueError(f'{self.image_codec} encoding of a {img.shape} image failed')
+        return _T['sensor_msgs/msg/CompressedImage'](
+            header=head, format=f'mono8; {self.image_codec} compressed mono8', data=data.ravel())
 
     def write_odometry(self, topic: str, time_ns: int, T_odom_base, linear, angular,
                        pose_variance, twist_variance, frame='odom'):

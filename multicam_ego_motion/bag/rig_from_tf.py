@@ -1,5 +1,6 @@
 """Build a rig from a bag when no rig file is given: extrinsics from /tf_static
-(base_link -> <cam>_optical) and camera names from the `/<cam>/image_raw` topics. A
+(base_link -> <cam>_optical) and camera names from the `/<cam>/image_raw` topics (or
+image_transport's `/<cam>/image_raw/compressed`, when the bag has only those). A
 `base_footprint` frame (REP-120: the robot's projection on the ground) gives the floor:
 floor_z is its z in base_link."""
 import numpy as np
@@ -18,6 +19,9 @@ def rig_from_bag(reader, base_frame: str = 'base_link') -> Rig:
             transforms[t.child_frame_id] = t
     cams = []
     for topic in sorted(reader.topics):
+        transport = 'raw'
+        if topic.endswith('/image_raw/compressed') and topic[:-len('/compressed')] not in reader.topics:
+            topic, transport = topic[:-len('/compressed')], 'compressed'
         if not topic.endswith('/image_raw'):
             continue
         name = topic[1:-len('/image_raw')].strip('/')
@@ -29,9 +33,10 @@ def rig_from_bag(reader, base_frame: str = 'base_link') -> Rig:
         tr, rq = t.transform.translation, t.transform.rotation
         cams.append(CameraMount(name, topic, f'/{name}/camera_info', frame,
                                 np.array([tr.x, tr.y, tr.z]),
-                                rotation_from_quaternion([rq.x, rq.y, rq.z, rq.w], f'/tf_static {frame}')))
+                                rotation_from_quaternion([rq.x, rq.y, rq.z, rq.w], f'/tf_static {frame}'),
+                                transport=transport))
     if not cams:
-        raise UserError(f'bag {reader.path} has no */image_raw topic')
+        raise UserError(f'bag {reader.path} has no */image_raw (nor */image_raw/compressed) topic')
     return Rig(cameras=cams, base_frame=base_frame, floor_z=footprint_z(transforms, base_frame))
 
 

@@ -148,6 +148,10 @@ def run(args) -> int:
         from multicam_ego_motion.bench.two_hosts import two_hosts
         lines += [''] + two_hosts(args.bag, out, rig_file, params, args.duration).lines(d.best[2])
 
+    # what each image input (raw encodings, JPEG, PNG) costs to decode, per VGA image
+    from multicam_ego_motion.bench import decode_cost
+    lines += [''] + decode_cost.lines()
+
     # 6. track CPU per tracked point (lockstep, M = 2)
     statuses = read_statuses(out / 'lockstep_m2' / 'output')
     runs = [('default bag', statuses)]

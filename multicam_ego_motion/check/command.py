@@ -89,7 +89,7 @@ def prepare(entry: BagEntry, suite, cache: Path, label: str) -> PreparedBag:
         reader = Rosbag2Reader(bag)
         rig, rig_file = resolve_rig(reader, str(entry.rig) if entry.rig else None)
         check_camera_topic_types(reader, rig)
-        if not any(c.image_topic in reader.topics for c in rig.cameras):
+        if not any(c.input_topic in reader.topics for c in rig.cameras):
             raise UserError(f'bag {bag} has none of the rig\'s image topics')
         if entry.ground_truth_topic not in reader.topics:
             raise UserError(f'bag {bag} has no {entry.ground_truth_topic}: nothing to score against')

@@ -93,7 +93,7 @@ def graph_topics(rig: Rig, topic_parameters: Iterable[str] = ()) -> List[str]:
     """Every absolute topic name the graph's nodes use (what a namespace must move)."""
     names = list(FIXED_TOPICS)
     for cam in rig.cameras:
-        names += [cam.image_topic, cam.camera_info_topic, f'/{cam.name}/pose']
+        names += [cam.image_topic, cam.input_topic, cam.camera_info_topic, f'/{cam.name}/pose']
         names += [bearings_topic(cam.name, q) for q in range(1, QUARTERS + 1)]
     names += list(topic_parameters)
     return sorted({n for n in names if n.startswith('/')})

@@ -98,7 +98,7 @@ def create_node(spec: dict, params_file: str = None, **kwargs):
 
 # Inputs from outside the graph (the player, a driver): not awaited by LINKS at start-up,
 # where nothing publishes them yet. Wheel odometry is optional anyway.
-EXTERNAL_INPUTS = ('/image_raw', '/camera_info', '/wheel/odom')
+EXTERNAL_INPUTS = ('/image_raw', '/image_raw/compressed', '/camera_info', '/wheel/odom')
 
 
 def linked(node, shared=(), graph_only=False) -> bool:

@@ -15,6 +15,9 @@ from scipy.spatial.transform import Rotation
 from multicam_ego_motion.errors import UserError
 
 MAX_CAMERAS = 8
+# image_transport's transports this graph reads: `raw` (sensor_msgs/Image on the image topic)
+# or `compressed` (sensor_msgs/CompressedImage, JPEG or PNG, on <image topic>/compressed)
+TRANSPORTS = {'raw': 'sensor_msgs/msg/Image', 'compressed': 'sensor_msgs/msg/CompressedImage'}
 
 
 @dataclass
@@ -25,6 +28,20 @@ class CameraMount:
     frame_id: str
     translation: np.ndarray   # camera centre in base_link, metres
     rotation: np.ndarray      # 3x3, columns are the optical axes expressed in base_link
+    transport: str = 'raw'    # TRANSPORTS: how its images come (image_transport's names)
+    # mono16 images: bits that carry the signal (12 for a 12-bit sensor writing 0..4095);
+    # the top 8 of them become the gray image (image_conversion)
+    mono16_bits: int = 16
+
+    @property
+    def input_topic(self) -> str:
+        """The topic its images come on: image_transport's `<image_topic>/compressed` for
+        the compressed transport."""
+        return self.image_topic + '/compressed' if self.transport == 'compressed' else self.image_topic
+
+    @property
+    def input_type(self) -> str:
+        return TRANSPORTS[self.transport]
 
     @property
     def T_base_cam(self) -> np.ndarray:
@@ -35,10 +52,15 @@ class CameraMount:
 
     def to_dict(self):
         q = Rotation.from_matrix(self.rotation).as_quat()
-        return {'name': self.name, 'image_topic': self.image_topic,
-                'camera_info_topic': self.camera_info_topic, 'frame_id': self.frame_id,
-                'translation': [round(float(v), 9) for v in self.translation],
-                'rotation_xyzw': [round(float(v), 12) for v in q]}
+        d = {'name': self.name, 'image_topic': self.image_topic,
+             'camera_info_topic': self.camera_info_topic, 'frame_id': self.frame_id,
+             'translation': [round(float(v), 9) for v in self.translation],
+             'rotation_xyzw': [round(float(v), 12) for v in q]}
+        if self.transport != 'raw':
+            d['transport'] = self.transport
+        if self.mono16_bits != 16:
+            d['mono16_bits'] = self.mono16_bits
+        return d
 
 
 @dataclass
@@ -122,6 +144,9 @@ class Rig:
                     '# floor_level (optional, default true): false for a road with slopes.\n'
                     '# stereo_pairs (optional): [[left, right], ...] cameras whose views overlap;\n'
                     '# without it, overlapping pairs are found from the extrinsics and intrinsics.\n'
+                    '# transport (optional, per camera): raw (sensor_msgs/Image on image_topic,\n'
+                    '# default) or compressed (CompressedImage on <image_topic>/compressed);\n'
+                    '# mono16_bits (optional): significant bits of a mono16 camera (default 16).\n'
                     '# Intrinsics come from each camera\'s CameraInfo.\n')
             yaml.safe_dump(self.to_dict(), f, sort_keys=False)
 
@@ -163,12 +188,18 @@ def parse_rig(data: dict, source: str = 'rig') -> Rig:
             R = validate_rotation_matrix(c['rotation'], where)
         else:
             R = rotation_from_quaternion(c.get('rotation_xyzw', [np.nan] * 4), where)
+        transport = c.get('transport', 'raw')
+        if transport not in TRANSPORTS:
+            raise UserError(f'{where}: transport must be one of {", ".join(TRANSPORTS)}, got {transport!r}')
+        bits = c.get('mono16_bits', 16)
+        if not (isinstance(bits, int) and not isinstance(bits, bool) and 8 <= bits <= 16):
+            raise UserError(f'{where}: mono16_bits must be a whole number of bits within 8..16, got {bits!r}')
         cams.append(CameraMount(
             name=name,
             image_topic=c.get('image_topic', f'/{name}/image_raw'),
             camera_info_topic=c.get('camera_info_topic', f'/{name}/camera_info'),
             frame_id=c.get('frame_id', f'{name}_optical'),
-            translation=t, rotation=R))
+            translation=t, rotation=R, transport=transport, mono16_bits=bits))
     if not 1 <= len(cams) <= MAX_CAMERAS:
         raise UserError(f'{source}: a rig has 1 to {MAX_CAMERAS} cameras, this one has {len(cams)}')
     if len(set(c.name for c in cams)) != len(cams):

@@ -14,7 +14,7 @@ def strip_entity(node, entity):
     entity.event_handlers = []
 
 
-def strip_event_handlers(node, keep=lambda topic: topic.endswith('/image_raw')):
+def strip_event_handlers(node, keep=lambda topic: topic.endswith(('/image_raw', '/compressed'))):
     """Remove the QoS event handlers of the node's publishers and subscriptions, except on
     `keep` topics (camera images: sensor-data QoS vs a driver's, where the warning helps).
     A worker's 21 nodes: their handlers were most of an idle worker's CPU."""

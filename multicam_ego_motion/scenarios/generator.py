@@ -5,13 +5,14 @@ itself), and also to `--rig-out` when given. Output is deterministic for a seed.
 """
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from multicam_ego_motion.bag.rig_bag_writer import STAMP_EPOCH_NS, RigBagWriter
+from multicam_ego_motion.bag.rig_bag_writer import IMAGE_CODECS, STAMP_EPOCH_NS, RigBagWriter
 from multicam_ego_motion.geometry.camera_intrinsics import CameraIntrinsics
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.geometry.rig import MAX_CAMERAS, CameraMount, Rig, optical_rotation, paper_rig
@@ -46,6 +47,11 @@ def configure_parser(p):
                    help='--rig stereo: distance between the two cameras (m, default 0.3)')
     p.add_argument('--rig-out', default=None, help='also write the rig YAML here')
     p.add_argument('--compression', choices=('zstd', 'lz4', 'none'), default='zstd')
+    p.add_argument('--compressed', choices=IMAGE_CODECS, default=None,
+                   help='write the images as a robot\'s image_transport "compressed" stream: '
+                        'sensor_msgs/CompressedImage on /<cam>/image_raw/compressed, JPEG or PNG '
+                        '(default: raw mono8 Image on /<cam>/image_raw)')
+    p.add_argument('--jpeg-quality', type=int, default=90, help='--compressed jpeg: quality 1..100 (default 90)')
     p.add_argument('--camera-offsets-ms', default=None, metavar='MS,MS,...',
                    help='free-running cameras: each camera\'s capture time after the frame '
                         'clock, one value per camera in rig order (e.g. 0,8,16,24); each image '
@@ -101,6 +107,8 @@ def validate(args):
         raise UserError(f'--fx must be positive, got {args.fx}')
     if not -0.5 <= args.k1 <= 0.5:
         raise UserError(f'--k1 must be within -0.5..0.5, got {args.k1}')
+    if not 1 <= getattr(args, 'jpeg_quality', 90) <= 100:
+        raise UserError(f'--jpeg-quality must be within 1..100, got {args.jpeg_quality}')
     # (callers such as a regression suite's generate spec may leave the rig options out)
     n = rig_camera_count(args)
     camera_timing(n, args.rate,
@@ -156,17 +164,21 @@ def pose_matrix(x, y, yaw):
 
 def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=480, fx=None,
              k1=0.0, cameras=4, rig_out=None, compression='zstd', progress=True,
-             rig_kind='ring', baseline=0.3, camera_offsets_ms=None, camera_rates=None):
+             rig_kind='ring', baseline=0.3, camera_offsets_ms=None, camera_rates=None,
+             image_codec=None, jpeg_quality=90):
     """Render the bag; returns a summary dict (frames, seconds, bag size).
 
     camera_offsets_ms / camera_rates (one per camera): free-running cameras, each captured
     at offset + n / rate; ground truth is written at every capture instant (and at the
-    wheel's), the wheel at `rate` as for a synchronised rig."""
+    wheel's), the wheel at `rate` as for a synchronised rig. image_codec ('jpeg', 'png'):
+    the cameras' images as CompressedImage (transport `compressed` in the rig)."""
     out = Path(out)
     check_output_free(out)
     if rig_kind not in ('ring', 'stereo'):
         raise UserError(f'unknown rig {rig_kind!r} (ring or stereo)')
     rig = stereo_pair_rig(baseline) if rig_kind == 'stereo' else evenly_spaced_rig(cameras)
+    if image_codec is not None:
+        rig = replace(rig, cameras=[replace(c, transport='compressed') for c in rig.cameras])
     intr = CameraIntrinsics.default(width, height, k1)
     if fx is not None:
         intr = CameraIntrinsics(width, height, fx, fx, intr.cx, intr.cy, intr.distortion)
@@ -205,7 +217,8 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
 
     started = time.perf_counter()
     images_written = 0
-    with RigBagWriter(out, rig, {c.name: intr for c in rig.cameras}, compression) as bag:
+    with RigBagWriter(out, rig, {c.name: intr for c in rig.cameras}, compression,
+                      image_codec or 'jpeg', jpeg_quality) as bag:
         bag.write_static_transforms(int(stamps[0]))
         for i in tqdm(range(len(stamps)), unit='frame', desc=f'{scenario}', disable=not progress):
             stamp = int(stamps[i])
@@ -248,7 +261,8 @@ def run(args) -> int:
                        args.compression, rig_kind=args.rig, baseline=args.baseline,
                        camera_offsets_ms=parse_camera_list(args.camera_offsets_ms, n_cameras,
                                                            '--camera-offsets-ms'),
-                       camera_rates=parse_camera_list(args.camera_rates, n_cameras, '--camera-rates'))
+                       camera_rates=parse_camera_list(args.camera_rates, n_cameras, '--camera-rates'),
+                       image_codec=args.compressed, jpeg_quality=args.jpeg_quality)
     print(f'{args.out}: {summary["frames"]} frames x {len(summary["cameras"])} cameras '
           f'({", ".join(summary["cameras"])}), path {summary["path_length"]:.1f} m, '
           f'rendered and written in {summary["seconds"]:.1f} s ({summary["fps"]:.1f} frames/s), '
