@@ -127,6 +127,7 @@ class GeneralFusion:
                                          arc_integration=p['arc_integration']))
         self.ekf.reinitialize(np.eye(4), np.eye(6) * p['initial_pose_std'] ** 2)
         self.last_stamp_ns: Optional[int] = None
+        self.wheel_used_ns: Optional[int] = None       # the stamp of the last wheel reading applied
         self.last_support_ns: Optional[int] = None     # last camera update or wheel prior
         self.has_tracked = False       # a camera fix, or (start_from_tracks) a twist from the tracks
         self.camera_fixed = False      # a camera fix
@@ -210,8 +211,14 @@ class GeneralFusion:
         p = self.params
         wheel_used = False
         camera_stamps = {n: e.stamp_ns for n, e in camera_estimates.items()}
-        free_running = any(e.stamp_ns != stamp_ns for e in camera_estimates.values())
-        wheel_first = (free_running and wheel_twist is not None and wheel_stamp_ns is not None
+        if wheel_stamp_ns is not None:
+            if self.wheel_used_ns is not None and wheel_stamp_ns <= self.wheel_used_ns:
+                # Each reading once: cameras at their own stamps come several times per wheel
+                # tick, and the same reading applied at each was 4-fold confident and stale.
+                wheel_twist = None
+            elif wheel_twist is not None:
+                self.wheel_used_ns = wheel_stamp_ns
+        wheel_first = (wheel_twist is not None and wheel_stamp_ns is not None
                        and self.last_stamp_ns is not None
                        and self.last_stamp_ns < wheel_stamp_ns < stamp_ns)
         if wheel_first:
