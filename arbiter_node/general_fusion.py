@@ -232,7 +232,13 @@ class GeneralFusion:
         self.last_stamp_ns = stamp_ns if self.last_stamp_ns is None else max(stamp_ns, self.last_stamp_ns)
         T_prev = self.last_T
 
-        prior = (self.ekf.T, self.ekf.pose_covariance) if p['median_use_prior'] and self.has_tracked else None
+        # A camera alone at its stamp (free-running cameras, each fused at its own capture
+        # time): a median of it and the prediction cannot out-vote either, and gating it on its
+        # own covariance rejected it whenever the prediction erred (in turns); the EKF's gate
+        # weighs both.
+        alone = len(camera_estimates) == 1 and len(self.rig.names) > 1
+        prior = (self.ekf.T, self.ekf.pose_covariance) if (p['median_use_prior'] and self.has_tracked
+                                                           and not alone) else None
         shift_twist = (self.ekf.twist, self.ekf.twist_covariance)
         camera_estimates = self._with_floor(self._to_common_time(stamp_ns, camera_estimates, *shift_twist))
         med = median_filter(dict(camera_estimates), p['median_mahalanobis_gate'], p['median_max_translation_m'],
