@@ -3,10 +3,11 @@
 Per frame: median filter across cameras (camera_median) -> covariance-weighted fusion of the
 inliers (quarter_fusion.information_fusion, correlation-inflated) -> BodyEKF update (gated).
 No informative camera: predict only, with the wheel-odometry twist prior when given.
-Free-running cameras: a frame's camera estimates may carry different stamps (within the
-general arbiter's sync window); each is moved to the frame's common time (the latest stamp)
-with the EKF's constant-twist motion model before the median (time_shift), and the fused
-pose is given back to each camera at its own stamp (pose_at).
+Free-running cameras: each estimate comes at its own stamp (a group of one camera, gated by
+the EKF alone) and each wheel reading is applied once, at its own stamp. With an opt-in sync
+window a frame's estimates may carry different stamps; each is moved to the frame's common
+time (the latest stamp) with the EKF's constant-twist motion model before the median
+(time_shift), and the fused pose is given back to each camera at its own stamp (pose_at).
 Scale: the rig-scale observer (rig_scale) is fed when per-camera translation directions are
 available and `scale_observed` reports it; until it is wired to correct anything, metric
 scale comes from the wheel prior (when configured) and from the landmarks.
