@@ -111,7 +111,8 @@ def every_image_fused_alone(run, bag, stalls=True):
     assert not timed_out(run)
     assert not stalls or 'stalled' not in run.stdout, run.stdout[-2000:]
     diags = run.diagnostics('ego_motion/general_arbiter')
-    assert len(diags) == len(stamps) and not [d for d in diags if d.values['cameras_missing']]
+    # (before a camera's second image its period is unknown: the first groups name it missing)
+    assert len(diags) == len(stamps) and not [d for d in diags if d.values['cameras_missing'] and d.t >= 0.2]
     used = sum(len(d.values['cameras_used'].split(',')) for d in diags if d.values['cameras_used'])
     return used
 
