@@ -53,13 +53,14 @@ NODE_PARAMETERS = {
     'use_wheel_odometry': (True, 'fuse /wheel/odom as a body-twist prior when it is published', None, None),
     'wheel_odometry_topic': ('/wheel/odom', 'wheel odometry (nav_msgs/Odometry)', None, None),
     'sync_timeout_s': (0.5, 'longest wait for all cameras of one frame', 0.0, 60.0),
-    'sync_window_s': (0.0, 'free-running cameras: estimates whose stamps lie within this of one another are one frame, fused at its latest stamp (each moved there with the EKF\'s twist); 0 = identical stamps only (hardware-synchronised rig). Above the rig\'s capture spread, below half a frame period; a lockstep player must group frames by the same window', 0.0, 1.0),
-    'learn_sync_window': (True, 'with sync_window_s 0: learn the window from the cameras\' first estimates (arbiter_node/capture_spread) when their stamps differ, use it from then on and say which sync_window_s to set', None, None),
+    'sync_window_s': (0.0, 'optional grouping of free-running cameras: estimates whose stamps lie within this of one another are one frame, fused at its latest stamp (each moved there with the EKF\'s twist); 0 (default) = estimates with identical stamps are fused together and every other one at its own stamp, in stamp order, which suits any phase and any mix of rates. A lockstep player must group frames by the same window', 0.0, 1.0),
+    'learn_sync_window': (False, 'with sync_window_s 0: learn the window from the cameras\' first estimates (arbiter_node/capture_spread) when their stamps differ, use it from then on and say which sync_window_s to set', None, None),
     'wheel_wait_s': (0.5, 'then the longest wait for the wheel reading of that frame (while a wheel publisher is connected)', 0.0, 60.0),
     'path_max_poses': (5000, 'poses kept on /ego_motion/path (oldest dropped)', 1, 1000000),
     'path_min_spacing_m': (0.05, '/ego_motion/path keeps a pose every this many metres', 0.0, 100.0),
     'path_min_turn_rad': (0.1, '... or every this much rotation', 0.0, 3.15),
     'path_publish_period_s': (1.0, '/ego_motion/path is republished at most this often (stamp time; it costs ~10 us per pose)', 0.0, 3600.0),
+    'odom_rate_hz': (0.0, '/odom, /tf and /ego_motion/path: 0 = after every fused update (each camera stamp of free-running cameras, each frame of a synchronised rig); > 0 = at most this often, each with the newest state and its stamp (lockstep replay sets 0: the player waits for /odom)', 0.0, 1000.0),
     'max_lag_s': (0.25, 'live: when the fused poses lag their frames by more than this, the quarters process every 2nd, 3rd ... frame until they catch up (/ego_motion/frame_schedule); 0 processes every frame (lockstep replay)', 0.0, 10.0),
 }
 
@@ -83,6 +84,7 @@ class GeneralArbiterNode(Node):
         self.wheel = WheelBuffer()
         self.path = PathHistory(p['path_min_spacing_m'], p['path_min_turn_rad'], p['path_max_poses'],
                                 p['path_publish_period_s'])
+        self.last_odom_ns = None              # stamp of the last /odom (odom_rate_hz)
         self.on_frame_done = None            # hook(node) after a frame was published (snapshots)
         self.diag_sink = None                # hook(stamp, status): the worker batches statuses per frame
         self.governor = FrameGovernor(p['max_lag_s'])
@@ -277,12 +279,14 @@ class GeneralArbiterNode(Node):
         t.linear.x, t.linear.y, t.linear.z, t.angular.x, t.angular.y, t.angular.z = (
             float(v) for v in fused.twist)
         odom.twist.covariance = covariance_field(fused.twist_covariance)
-        if self.p['publish_tf']:
-            self.pub_tf.publish(TFMessage(transforms=[transform_msg(
-                fused.T_odom_base, odom_frame, base_frame, fused.stamp_ns)]))
-        if self.path.add(fused.stamp_ns, fused.T_odom_base, PoseStamped(header=odom.header, pose=odom.pose.pose)):
-            self.pub_path.publish(Path(header=odom.header, poses=[p[2] for p in self.path.poses]))
-        self.pub_odom.publish(odom)
+        if odom_due(self.last_odom_ns, fused.stamp_ns, self.p['odom_rate_hz']):
+            self.last_odom_ns = fused.stamp_ns
+            if self.p['publish_tf']:
+                self.pub_tf.publish(TFMessage(transforms=[transform_msg(
+                    fused.T_odom_base, odom_frame, base_frame, fused.stamp_ns)]))
+            if self.path.add(fused.stamp_ns, fused.T_odom_base, PoseStamped(header=odom.header, pose=odom.pose.pose)):
+                self.pub_path.publish(Path(header=odom.header, poses=[p[2] for p in self.path.poses]))
+            self.pub_odom.publish(odom)
         missing = list(group.missing)
         level = 'ok' if fused.state == 'tracking' and not missing else 'warn'
         parts = [fused.state]
@@ -301,6 +305,15 @@ class GeneralArbiterNode(Node):
              'frame_stride': self.governor.stride, 'arbiter_ms': ms,
              'estimates_off_schedule': self.off_schedule,
              'sync_timed_out': group.timed_out}), self.diag_sink, self.pub_diag)
+
+
+def odom_due(last_ns, stamp_ns, rate_hz) -> bool:
+    """Whether the state at stamp_ns goes out on /odom: every one at rate 0, else the first
+    at least 1 / rate after the last published (stamps, not the wall clock: a replay gives
+    the same /odom at any speed)."""
+    if rate_hz <= 0 or last_ns is None:
+        return True
+    return stamp_ns - last_ns >= round(1e9 / rate_hz)
 
 
 def feedback_stamps(group, fused_stamp_ns):

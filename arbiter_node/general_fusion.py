@@ -3,10 +3,11 @@
 Per frame: median filter across cameras (camera_median) -> covariance-weighted fusion of the
 inliers (quarter_fusion.information_fusion, correlation-inflated) -> BodyEKF update (gated).
 No informative camera: predict only, with the wheel-odometry twist prior when given.
-Free-running cameras: a frame's camera estimates may carry different stamps (within the
-general arbiter's sync window); each is moved to the frame's common time (the latest stamp)
-with the EKF's constant-twist motion model before the median (time_shift), and the fused
-pose is given back to each camera at its own stamp (pose_at).
+Free-running cameras: each estimate comes at its own stamp (a group of one camera, gated by
+the EKF alone) and each wheel reading is applied once, at its own stamp. With an opt-in sync
+window a frame's estimates may carry different stamps; each is moved to the frame's common
+time (the latest stamp) with the EKF's constant-twist motion model before the median
+(time_shift), and the fused pose is given back to each camera at its own stamp (pose_at).
 Scale: the rig-scale observer (rig_scale) is fed when per-camera translation directions are
 available and `scale_observed` reports it; until it is wired to correct anything, metric
 scale comes from the wheel prior (when configured) and from the landmarks.
@@ -135,6 +136,7 @@ class GeneralFusion:
                                          arc_integration=p['arc_integration']))
         self.ekf.reinitialize(np.eye(4), np.eye(6) * p['initial_pose_std'] ** 2)
         self.last_stamp_ns: Optional[int] = None
+        self.wheel_used_ns: Optional[int] = None       # the stamp of the last wheel reading applied
         self.last_support_ns: Optional[int] = None     # last camera update or wheel prior
         self.has_tracked = False       # a camera fix, or (start_from_tracks) a twist from the tracks
         self.camera_fixed = False      # a camera fix
@@ -218,8 +220,14 @@ class GeneralFusion:
         p = self.params
         wheel_used = False
         camera_stamps = {n: e.stamp_ns for n, e in camera_estimates.items()}
-        free_running = any(e.stamp_ns != stamp_ns for e in camera_estimates.values())
-        wheel_first = (free_running and wheel_twist is not None and wheel_stamp_ns is not None
+        if wheel_stamp_ns is not None:
+            if self.wheel_used_ns is not None and wheel_stamp_ns <= self.wheel_used_ns:
+                # Each reading once: cameras at their own stamps come several times per wheel
+                # tick, and the same reading applied at each was 4-fold confident and stale.
+                wheel_twist = None
+            elif wheel_twist is not None:
+                self.wheel_used_ns = wheel_stamp_ns
+        wheel_first = (wheel_twist is not None and wheel_stamp_ns is not None
                        and self.last_stamp_ns is not None
                        and self.last_stamp_ns < wheel_stamp_ns < stamp_ns)
         if wheel_first:
@@ -234,7 +242,13 @@ class GeneralFusion:
         T_prev = self.last_T
 
         road_twists = self._road_twist() if self.has_tracked else 0
-        prior = (self.ekf.T, self.ekf.pose_covariance) if p['median_use_prior'] and self.has_tracked else None
+        # A camera alone at its stamp (free-running cameras, each fused at its own capture
+        # time): a median of it and the prediction cannot out-vote either, and gating it on its
+        # own covariance rejected it whenever the prediction erred (in turns); the EKF's gate
+        # weighs both.
+        alone = len(camera_estimates) == 1 and len(self.rig.names) > 1
+        prior = (self.ekf.T, self.ekf.pose_covariance) if (p['median_use_prior'] and self.has_tracked
+                                                           and not alone) else None
         shift_twist = (self.ekf.twist, self.ekf.twist_covariance)
         camera_estimates = self._with_floor(self._to_common_time(stamp_ns, camera_estimates, *shift_twist))
         med = median_filter(dict(camera_estimates), p['median_mahalanobis_gate'], p['median_max_translation_m'],

@@ -34,19 +34,20 @@ def configure_parser(p):
     p.add_argument('--start-offset', type=float, default=0.0, help='skip this much of the bag [s]')
     p.add_argument('--duration', type=float, help='play only this much of the bag [s]')
     p.add_argument('--no-rebalance', action='store_true', help='keep the start allocation')
-    p.add_argument('--lockstep-depth', type=int, default=LOCKSTEP_DEPTH, metavar='N',
+    p.add_argument('--lockstep-depth', type=int, default=None, metavar='N',
                    help=f'lockstep: frames in flight (default {LOCKSTEP_DEPTH}: the graph pipelines; '
-                        'the odometry is the same for any N)')
+                        'free-running cameras: one more than the cameras; the odometry is the same '
+                        'for any N that does not stall)')
     p.add_argument('--migrate-every', type=int, default=0, metavar='K',
                    help='debug (lockstep): move one quarter node to the next worker every K frames')
     p.add_argument('--kill-worker-at', type=int, default=None, metavar='N',
                    help='debug (lockstep): SIGKILL the last worker once N frames were acknowledged, '
                         'as a crash would (a crash-recovery drill at a chosen frame)')
     p.add_argument('--sync-window', type=float, default=None, metavar='S',
-                   help='free-running cameras: images within S seconds are one frame, fused at '
-                        'its latest stamp (the general arbiter\'s sync_window_s, and the lockstep '
-                        'player\'s frames; default: the params file\'s value, or when that is 0, '
-                        'found from the bag\'s image stamps)')
+                   help='optional, free-running cameras: images within S seconds are one frame, '
+                        'fused at its latest stamp (the general arbiter\'s sync_window_s, and the '
+                        'lockstep player\'s frames; default: the params file\'s value, 0: each '
+                        'camera fused at its own stamp)')
     add_remote_arguments(p)
     p.add_argument('--debug-images', action='store_true',
                    help='draw the tracker (the nodes\' debug_images parameter) and record each '
@@ -163,6 +164,7 @@ def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False,
                'use_sim_time': not lockstep}
     if lockstep:
         general['max_lag_s'] = 0.0
+        general['odom_rate_hz'] = 0.0     # the player waits for each fused stamp's /odom
     if sync_window_s is not None:     # (left out when not given: the params file's value stands)
         general['sync_window_s'] = float(sync_window_s)
     overrides = {'quarter': {'image_qos': 'reliable' if lockstep else 'sensor_data',
@@ -175,18 +177,19 @@ def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False,
     return overrides
 
 
-def detected_sync_window(reader, rig, params):
-    """The grouping window of free-running cameras, from the bag's image stamps, when the
-    params file sets none (None: leave the params file's value)."""
+def free_running_depth(reader, rig) -> int:
+    """Lockstep frames in flight for the bag's cameras: LOCKSTEP_DEPTH when their stamps
+    coincide; with free-running cameras (each image a frame of its own, fused at its own
+    stamp) one more than the cameras, so that the images the general arbiter must see before
+    it fuses an estimate (the other cameras' next ones, the wheel's next tick) are out before
+    the player waits for that estimate's /odom. Says so in one line."""
     from multicam_ego_motion.bag.capture_spread import bag_capture_spread
-    from multicam_ego_motion.params_file import sync_window_from
-    if sync_window_from(params) > 0:
-        return None
-    window, said = bag_capture_spread(reader, [c.input_topic for c in rig.cameras]).verdict()
-    if said:
-        print(f'replay: {said} (--sync-window sets another)' if window else f'replay: warning: {said}',
-              flush=True)
-    return window
+    spread = bag_capture_spread(reader, [c.input_topic for c in rig.cameras])
+    if spread.spread_ns == 0:
+        return LOCKSTEP_DEPTH
+    print(f'replay: {spread.describe()}: free-running, each camera fused at its own stamp',
+          flush=True)
+    return max(LOCKSTEP_DEPTH, len(rig.cameras) + 1)
 
 
 def recorded_topics(rig, debug_images: bool = False):
@@ -472,15 +475,15 @@ def run(args) -> int:
     if missing:
         print(f'replay: cameras without topics in the bag (the graph runs on the others): '
               f'{", ".join(missing)}', flush=True)
-    sync_window = args.sync_window
-    if sync_window is None:
-        sync_window = detected_sync_window(reader, rig, params)
+    depth = args.lockstep_depth
+    if depth is None:
+        depth = free_running_depth(reader, rig)
     g = run_graph(args.bag, out, rig, rig_file, params, args.workers, lockstep=lockstep,
                   rate=args.rate or 1.0, use_wheel=not args.no_wheel, ack_timeout=args.ack_timeout,
                   start_offset=args.start_offset, duration=args.duration,
                   migrate_every=args.migrate_every, rebalance=not args.no_rebalance,
-                  logger=lambda t: print(t, flush=True), lockstep_depth=args.lockstep_depth,
-                  debug_images=args.debug_images, sync_window_s=sync_window, remote=remote,
+                  logger=lambda t: print(t, flush=True), lockstep_depth=depth,
+                  debug_images=args.debug_images, sync_window_s=args.sync_window, remote=remote,
                   kill_worker_at=args.kill_worker_at)
     st = g.coordinator.stats
     print(f'coordinator: {st.migrations} migrations ({st.rebalances} rebalances), '

@@ -9,7 +9,9 @@ camera's first CameraInfo is processed once that arrives (the quarter node keeps
 and the wheel twist is the one the general arbiter would pick. The estimator is chaotic (a
 last-bit difference can move a final drift by 50 %), so anything less is another run.
 
-Free-running cameras (`sync_window_s` > 0, the general arbiter's parameter): images whose
+Free-running cameras: images with identical stamps are one frame and every other image a
+frame of its own, fused at its stamp, as the general arbiter groups them. With an opt-in
+window (`sync_window_s` > 0, the general arbiter's parameter): images whose
 stamps lie within the window are one frame, as the arbiter groups them; each camera is
 processed at its own stamp, the frame fused at its latest, and the fused pose fed back at
 every camera's stamp, oldest first, as the general arbiter publishes it.

@@ -1,40 +1,43 @@
-"""Free-running cameras through the whole graph (real nodes over DDS, 2 workers): cameras
-that capture 0, 8, 16 and 24 ms after the frame clock, and cameras at different rates (two
-at 30 Hz, two at 15 Hz). The general arbiter groups their estimates by its sync window,
-moves each to the frame's latest stamp and feeds the fused pose back at every camera's own
-stamp; the lockstep player groups the images by the same window.
+"""Free-running cameras through the whole graph (real nodes over DDS, 2 workers): cameras that
+capture 0, 16, 32 and 48 ms after the frame clock (a spread no sync window groups at 15 Hz),
+cameras with random phases, and four rates at once (30, 20, 15 and 10 Hz). The general arbiter
+fuses every estimate at its own stamp, in stamp order (estimates with identical stamps
+together), and feeds the fused pose back at that stamp; the lockstep player plays every image
+as a frame of its own, with one more frame in flight than the rig has cameras.
 
-The loop: 10 s at 15 Hz, 320 x 240, fx 200, seed 7 (2.5 m/s at its fastest: a camera 24 ms
-early sees the rig 6 cm back). Lockstep accuracy is asserted against the synchronised run
-of the same settings, and against absolute limits: the accuracy suite's loop limits (0.6 %
-ATE, 0.7 % final drift, for 8 Hz) with the margin a faster, shorter run needs. Rate-mode
-accuracy depends on the machine's load: it is measured by `make bench`, not asserted; here
-rate mode must run through with offsets and fuse every frame it takes without a timeout.
+The loop: 10 s, 320 x 240, fx 200, seed 7 (2.5 m/s at its fastest). Lockstep accuracy is
+asserted against absolute limits (the accuracy suite's loop limits, 0.6 % ATE and 0.7 % final
+drift at 8 Hz, with the margin a faster, shorter run needs) and, for the fixed offsets and the
+mixed rates, against the synchronised run of the same scene. Random phases meet the absolute
+limits; within 20 % of the synchronised run they are on some seeds and not on others (the
+estimator is chaotic: docs/fusion.md gives the figures), so that is not asserted. Rate-mode
+accuracy depends on the machine's load: here rate mode must run through and fuse what it
+takes without timeouts.
 """
-from pathlib import Path
-
+import numpy as np
 import pytest
 
 from replay_run import replay
 from multicam_ego_motion.evaluation.evaluate import evaluate_trajectories
 from multicam_ego_motion.evaluation.trajectory_io import load_trajectory
-from multicam_ego_motion.scenarios.generator import generate
+from multicam_ego_motion.scenarios.generator import generate, random_phases_ms
 
 LOOP = dict(seed=7, duration=10.0, width=320, height=240, fx=200.0, progress=False)
-OFFSETS_MS = [0, 8, 16, 24]
-WINDOW = '0.03'              # above the 24 ms spread, below half the 66.7 ms period
-MIXED_WINDOW = '0.01'        # the 30 Hz period is 33.3 ms
+OFFSETS_MS = [0, 16, 32, 48]
+MIXED_RATES = [30, 20, 15, 10]
 ATE_LIMIT_PCT, DRIFT_LIMIT_PCT = 0.8, 0.9
 RELATIVE = 1.2               # within 20 % of the synchronised run
+CAMERAS = ['/back/image_raw', '/front/image_raw', '/left/image_raw', '/right/image_raw']
 
 
 @pytest.fixture(scope='module')
 def bags(tmp_path_factory):
     root = tmp_path_factory.mktemp('free_running')
-    b = {'sync': root / 'sync', 'offsets': root / 'offsets', 'mixed': root / 'mixed'}
+    b = {k: root / k for k in ('sync', 'offsets', 'random', 'mixed')}
     generate('loop', b['sync'], rate=15.0, **LOOP)
     generate('loop', b['offsets'], rate=15.0, camera_offsets_ms=OFFSETS_MS, **LOOP)
-    generate('loop', b['mixed'], rate=30.0, camera_rates=[30, 30, 15, 15], **LOOP)
+    generate('loop', b['random'], rate=15.0, camera_phases='random', **LOOP)
+    generate('loop', b['mixed'], rate=30.0, camera_rates=MIXED_RATES, **LOOP)
     return b
 
 
@@ -61,29 +64,20 @@ def timed_out(run):
 @pytest.fixture(scope='module')
 def runs(bags, tmp_path_factory):
     root = tmp_path_factory.mktemp('free_running_runs')
-    return {'sync': replay(bags['sync'], root / 'sync'),
-            # no --sync-window: replay finds it from the bag's image stamps
-            'offsets': replay(bags['offsets'], root / 'offsets'),
-            'mixed': replay(bags['mixed'], root / 'mixed', '--sync-window', MIXED_WINDOW)}
+    return {k: replay(bags[k], root / k) for k in ('sync', 'offsets', 'random', 'mixed')}
 
 
-def test_generated_cameras_capture_at_their_own_instants(bags):
-    stamps = camera_stamps(bags['offsets'])
-    front, right = stamps['/front/image_raw'], stamps['/right/image_raw']
-    assert len(front) == len(right) == 151
-    assert {r - f for f, r in zip(front, right)} == {24_000_000}
-    mixed = camera_stamps(bags['mixed'])
-    assert len(mixed['/front/image_raw']) == 301 and len(mixed['/back/image_raw']) == 151
-    assert set(mixed['/back/image_raw']) <= set(mixed['/front/image_raw'])
-
-
-def test_ground_truth_at_every_capture_instant(bags):
-    from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
-    from multicam_ego_motion.ros_plumbing.pose_messages import stamp_to_ns
-    gt = {stamp_to_ns(m.header.stamp) for _, m, _ in
-          Rosbag2Reader(bags['offsets']).decoded(['/ground_truth/odom'])}
-    for topic, stamps in camera_stamps(bags['offsets']).items():
-        assert set(stamps) <= gt, topic
+def test_random_phases_are_seeded_and_within_the_period(bags):
+    phases = random_phases_ms(7, [15.0] * 4)
+    assert phases == random_phases_ms(7, [15.0] * 4) != random_phases_ms(8, [15.0] * 4)
+    assert all(0 <= p < 1000 / 15 for p in phases) and len(set(phases)) == 4
+    assert all(0 <= p < 1000 / r for p, r in zip(random_phases_ms(3, MIXED_RATES), MIXED_RATES))
+    stamps = camera_stamps(bags['random'])
+    first = min(s[0] for s in stamps.values())
+    got = sorted((s[0] - first) / 1e6 for s in stamps.values())
+    want = sorted(p - min(phases) for p in phases)
+    assert np.allclose(got, want, atol=1e-3), (got, want)
+    assert all(len(s) == 151 for s in stamps.values())
 
 
 def test_generator_refuses_bad_camera_timing(tmp_path):
@@ -94,88 +88,102 @@ def test_generator_refuses_bad_camera_timing(tmp_path):
         generate('loop', tmp_path / 'b', rate=15.0, camera_offsets_ms=[0, 8, 16, 70], **LOOP)
     with pytest.raises(UserError, match='camera 1 rate'):
         generate('loop', tmp_path / 'c', rate=15.0, camera_rates=[15, 500, 15, 15], **LOOP)
+    with pytest.raises(UserError, match='exclude each other'):
+        generate('loop', tmp_path / 'd', rate=15.0, camera_offsets_ms=[0, 8, 16, 24],
+                 camera_phases='random', **LOOP)
 
 
-def test_free_running_loop_lockstep_matches_the_synchronised_run(runs):
-    sync, off = scored(runs['sync']), scored(runs['offsets'])
-    assert 'cameras capture up to 24.0 ms apart (shortest frame period 66.7 ms): free-running, ' \
-        'grouped by a sync window of 0.031 s' in runs['offsets'].stdout, runs['offsets'].stdout
-    assert 'sync window' not in runs['sync'].stdout
-    # every frame fused from all four cameras, none after waiting for the sync timeout
-    assert off['poses'] == sync['poses'] == 151
-    assert not timed_out(runs['offsets'])
-    diags = runs['offsets'].diagnostics('ego_motion/general_arbiter')
-    assert len(diags) == 151 and not [d for d in diags if d.values['cameras_missing']]
+def test_ground_truth_at_every_capture_instant(bags):
+    from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
+    from multicam_ego_motion.ros_plumbing.pose_messages import stamp_to_ns
+    gt = {stamp_to_ns(m.header.stamp) for _, m, _ in
+          Rosbag2Reader(bags['random']).decoded(['/ground_truth/odom'])}
+    for topic, stamps in camera_stamps(bags['random']).items():
+        assert set(stamps) <= gt, topic
+
+
+def every_image_fused_alone(run, bag, stalls=True):
+    """One /odom per distinct camera stamp, each fused from the cameras of that stamp, none
+    after a timeout and (stalls) no lockstep frame let out past a stalled one."""
+    stamps = sorted({s for v in camera_stamps(bag).values() for s in v})
+    odom, _, _, _ = run.odometry()
+    assert [round(s, 6) for s in odom] == [round((s - run.start_ns) / 1e9, 6) for s in stamps]
+    # (the bag's last image may wait for a camera that is due just after it, and whose image
+    # the bag ends before: one timeout there, none before)
+    assert not [d for d in timed_out(run) if d.t < odom[-1] - 0.07]
+    assert not stalls or 'stalled' not in run.stdout, run.stdout[-2000:]
+    diags = run.diagnostics('ego_motion/general_arbiter')
+    # (cameras_missing is not asserted: a group names a camera whose image comes within an
+    # eighth of its period after it, and whose image is fused right after it; the images used
+    # are counted instead)
+    assert len(diags) == len(stamps)
+    used = sum(len(d.values['cameras_used'].split(',')) for d in diags if d.values['cameras_used'])
+    return used
+
+
+def test_offsets_over_most_of_the_period_lockstep(runs, bags):
+    run = runs['offsets']
+    assert 'cameras capture up to 32.0 ms apart (shortest frame period 66.7 ms): free-running, ' \
+        'each camera fused at its own stamp' in run.stdout, run.stdout
+    assert 'free-running' not in runs['sync'].stdout
+    # nearly every image is used (each camera's first starts its map; 2 % are gated out)
+    assert every_image_fused_alone(run, bags['offsets']) >= 0.97 * 4 * 150
+    sync, off = scored(runs['sync']), scored(run)
     assert off['ate_pct'] <= RELATIVE * sync['ate_pct'], (off['ate_pct'], sync['ate_pct'])
     assert off['final_drift_pct'] <= RELATIVE * sync['final_drift_pct'], \
         (off['final_drift_pct'], sync['final_drift_pct'])
     assert off['ate_pct'] <= ATE_LIMIT_PCT and off['final_drift_pct'] <= DRIFT_LIMIT_PCT
 
 
-def test_odometry_is_stamped_at_each_frames_latest_capture(runs, bags):
-    stamps, _, _, _ = runs['offsets'].odometry()
-    right = camera_stamps(bags['offsets'])['/right/image_raw']    # the 24 ms camera
-    start = runs['offsets'].start_ns
-    assert [round(s, 6) for s in stamps] == [round((r - start) / 1e9, 6) for r in right]
+def test_random_phases_lockstep(runs, bags):
+    assert every_image_fused_alone(runs['random'], bags['random']) >= 0.97 * 4 * 150
+    m = scored(runs['random'])
+    assert m['ate_pct'] <= ATE_LIMIT_PCT and m['final_drift_pct'] <= DRIFT_LIMIT_PCT, m
 
 
-def test_cameras_at_different_rates_fuse_every_frame(runs):
+def test_lockstep_equals_the_sequential_pipeline_with_random_phases(runs, bags):
+    from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
+    from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
+    from multicam_ego_motion.replay import resolve_rig
+    from multicam_ego_motion.ros_plumbing.package_share import default_params
+    from multicam_ego_motion.sequential_pipeline import run_sequential
+    params = default_params()
+    rig, _ = resolve_rig(Rosbag2Reader(bags['random']), None)
+    res = run_sequential(bags['random'], rig, quarter_params_from(params), fusion_params_from(params))
+    _, poses, _, _ = runs['random'].odometry()
+    assert len(res.fused) == len(poses) == 604
+    assert max(np.abs(f.T_odom_base - T).max() for f, T in zip(res.fused, poses)) < 1e-6
+
+
+def test_four_rates_at_once_lockstep(runs, bags):
+    # (a frame or two of the first 0.1 s may wait for the 2 s stall: until a camera's second
+    # image its period is unknown and it is waited for; the odometry is the same)
+    used = every_image_fused_alone(runs['mixed'], bags['mixed'], stalls=False)
+    images = sum(len(v) for v in camera_stamps(bags['mixed']).values())
+    assert used >= 0.94 * images
     sync, mixed = scored(runs['sync']), scored(runs['mixed'])
-    assert mixed['poses'] == 301                      # every 30 Hz frame has its /odom
-    # The slower cameras' period is learnt from their second frame: at most their first
-    # gap waited for the timeout.
-    assert len(timed_out(runs['mixed'])) <= 1
-    diags = runs['mixed'].diagnostics('ego_motion/general_arbiter')
-    # every camera in each of its frames, and a 15 Hz camera is not missing between them
-    assert len(diags) == 301 and len([d for d in diags if d.values['cameras_missing']]) <= 1
-    assert sum('back' in d.values['cameras_used'] for d in diags) >= 140    # of its 151 frames
     assert mixed['ate_pct'] <= RELATIVE * sync['ate_pct'] and mixed['ate_pct'] <= ATE_LIMIT_PCT
+    assert mixed['final_drift_pct'] <= RELATIVE * sync['final_drift_pct']
     assert mixed['final_drift_pct'] <= DRIFT_LIMIT_PCT
 
 
-def test_rate_mode_with_offsets_fuses_every_frame_it_takes(bags, tmp_path):
-    # A low rate, so that the graph keeps up. Rate mode waits 0.2 s for a late camera: on a
-    # machine shared with other work a camera's quarters are sometimes later than that, so a
-    # rare timeout is the load's. Without the window every image is a frame of its own and
-    # every one of them ends on the timeout.
-    run = replay(bags['offsets'], tmp_path / 'rate', '--rate', '0.25', '--duration', '4',
-                 '--sync-window', WINDOW)
+def test_rate_mode_with_random_phases_fuses_what_it_takes(bags, tmp_path):
+    # Real time: the graph skips what it cannot keep up with (the frame schedule), but fuses
+    # each estimate it gets at its own stamp, without waiting for a sync timeout.
+    run = replay(bags['random'], tmp_path / 'rate', '--rate', '1', '--duration', '4')
     assert run.returncode == 0, run
     stamps, _, _, _ = run.odometry()
-    assert len(stamps) >= 30                          # of 61 played (skipping when behind)
+    assert len(stamps) >= 40                          # of 240 images played
     diags = run.diagnostics('ego_motion/general_arbiter')
     assert len(timed_out(run)) <= len(diags) // 10, [d.t for d in timed_out(run)]
-    assert sum(not d.values['cameras_missing'] for d in diags) >= 0.9 * len(diags)
 
 
-def test_lockstep_player_groups_a_frames_images_by_the_window(bags):
+def test_lockstep_player_plays_each_image_as_a_frame(bags):
     from multicam_ego_motion.bag.player import BagPlayer, PlayOptions
-    frames = [f for f in BagPlayer(bags['offsets'], PlayOptions(lockstep=True, sync_window_s=0.03)).frames()
-              if f.is_trigger]
-    right = camera_stamps(bags['offsets'])['/right/image_raw']
-    assert len(frames) == 151 and [f.stamp_ns for f in frames] == right   # acked at the latest
-    assert all(sorted(m.topic for m in f.messages if m.topic.endswith('/image_raw')) ==
-               ['/back/image_raw', '/front/image_raw', '/left/image_raw', '/right/image_raw'] for f in frames)
-    # without the window every image is a frame of its own (and waited for the sync timeout)
-    assert sum(f.is_trigger for f in BagPlayer(bags['offsets'], PlayOptions(lockstep=True)).frames()) == 604
-    mixed = [f for f in BagPlayer(bags['mixed'], PlayOptions(lockstep=True, sync_window_s=0.01)).frames()
-             if f.is_trigger]
-    assert [sum(m.topic.endswith('/image_raw') for m in f.messages) for f in mixed] == [4, 2] * 150 + [4]
-    # rate mode plays by the bag's clock: no window
-    assert len(list(BagPlayer(bags['offsets'], PlayOptions(sync_window_s=0.03)).frames())) == 604
-
-
-def test_a_live_graph_learns_the_window_of_free_running_cameras(bags, tmp_path):
-    """sync_window_s 0 on free-running cameras (a rig configured as synchronised): the general
-    arbiter learns the window from its cameras' first estimates and groups them from then on,
-    saying which sync_window_s to set. Without it each camera's estimate is a frame of its own."""
-    out = tmp_path / 'learn'
-    run = replay(bags['offsets'], out, '--rate', '0.25', '--duration', '4', '--sync-window', '0')
-    assert run.returncode == 0, run
-    logs = '\n'.join(p.read_text() for p in (out / 'logs').glob('worker_*.log'))
-    assert 'cameras capture up to 24.0 ms apart (shortest frame period 66.7 ms): free-running, ' \
-        'grouped by a sync window of 0.031 s from now on' in logs, logs[-3000:]
-    # learnt after 20 frames of the first camera (1.3 s of the bag)
-    late = [d for d in run.diagnostics('ego_motion/general_arbiter') if d.t >= 2.0]
-    assert len(late) >= 15
-    assert sum(not d.values['cameras_missing'] for d in late) >= 0.9 * len(late)
+    frames = [f for f in BagPlayer(bags['random'], PlayOptions(lockstep=True)).frames() if f.is_trigger]
+    assert len(frames) == 604
+    assert [f.stamp_ns for f in frames] == sorted(s for v in camera_stamps(bags['random']).values() for s in v)
+    # an explicit window still groups a frame's images (sync_window_s, opt-in)
+    grouped = [f for f in BagPlayer(bags['offsets'], PlayOptions(lockstep=True, sync_window_s=0.03)).frames()
+               if f.is_trigger]
+    assert all(sum(m.topic in CAMERAS for m in f.messages) <= 2 for f in grouped) and len(grouped) == 302

@@ -183,3 +183,40 @@ def test_planar_motion_holds_height_and_tilt_against_cameras_that_climb():
     # starts at rest, a rig with a floor at any speed: start_speed_std)
     no_floor = dataclasses.replace(RIG, floor_z=None)
     assert run(True, no_floor) == run(False, no_floor)
+
+
+def test_each_wheel_reading_is_applied_once():
+    # Free-running cameras fuse several times per wheel tick: the reading must not be reused
+    # (stale, and as confident again each time).
+    wheel = (np.r_[1.0, 0, 0, 0, 0, 0], np.eye(6) * 1e-4)
+    rng = np.random.default_rng(3)
+    fused = {}
+    for reuse in (False, True):
+        g = GeneralFusion(RIG)
+        g.process(0, cams(rng, truth(0.0), 0), wheel_twist=wheel, wheel_stamp_ns=0)
+        stamp = DT_NS // 3
+        f = g.process(stamp, {'left': cams(rng, truth(stamp * 1e-9), stamp)['left']},
+                      wheel_twist=wheel, wheel_stamp_ns=stamp if reuse else 0)
+        fused[reuse] = f
+    assert fused[False].scale_source != 'wheel' and fused[True].scale_source == 'wheel'
+
+
+def test_a_camera_alone_at_its_stamp_is_gated_by_the_ekf_not_the_median():
+    # The prediction a little more confident than the camera (after the covariance floor,
+    # 5 mm) and 2.8 cm from it: a two-vote median sat on the prediction and rejected the
+    # camera on its own covariance (31 > 22.5); the EKF's gate weighs both (17 < 22.5).
+    g = GeneralFusion(RIG)
+    rng = np.random.default_rng(4)
+    for k in range(5):
+        g.process(k * DT_NS, cams(rng, truth(k * 0.05), k * DT_NS))
+    stamp = 4 * DT_NS
+    g.ekf.kf.P[:6, :6] = np.diag([0.0045] * 3 + [0.0018] * 3) ** 2
+    T = se3.perturb(g.ekf.T, [0.028, 0, 0, 0, 0, 0])
+    f = g.process(stamp, {'back': PoseEstimate(stamp, T, np.eye(6) * 1e-12, source='back', state='tracking')})
+    assert f.cameras_used == ['back'], f.cameras_rejected
+
+
+def test_odom_rate():
+    from arbiter_node.general_arbiter_node import odom_due
+    assert odom_due(None, 5, 10.0) and odom_due(0, 1, 0.0)
+    assert not odom_due(0, 99_999_999, 10.0) and odom_due(0, 100_000_000, 10.0)

@@ -336,6 +336,8 @@ class BagPlayer:
         acked_trigger = None          # index of the last acknowledged trigger frame
         depth = opts.lockstep_depth if self._ack_stamped else 1
         in_flight = deque()           # trigger frames published, not yet acknowledged
+        trigger_set = set(self.trigger_topics)
+        first_seen = set()            # trigger topics published before the first ack
         any_acked = False
         ahead = 0                     # frames let out beyond the depth while the oldest stalls
         self._ack_deadline.clear()
@@ -371,8 +373,13 @@ class BagPlayer:
                 result.frames += 1
                 if opts.lockstep and frame.is_trigger:
                     in_flight.append(frame)
+                    first_seen.update(m.topic for m in frame.messages if m.topic in trigger_set)
                     # The first frame alone: the graph's first answer shows it is listening.
-                    while len(in_flight) >= (depth + ahead if any_acked else 1):
+                    # Free-running cameras: up to the first image of every camera (within the
+                    # depth), as the general arbiter fuses the first estimate once every camera
+                    # has reported one at or after it.
+                    first_limit = 1 if first_seen >= trigger_set else depth
+                    while len(in_flight) >= (depth + ahead if any_acked else first_limit):
                         stall_s = (opts.stall_ahead_s if opts.stall_ahead_s > 0 and any_acked
                                    and ahead < STALL_AHEAD_FRAMES else None)
                         n = self._await_ack(in_flight, acks_before, publishers, stall_s)

@@ -56,6 +56,9 @@ def configure_parser(p):
                    help='free-running cameras: each camera\'s capture time after the frame '
                         'clock, one value per camera in rig order (e.g. 0,8,16,24); each image '
                         'is rendered at and stamped with its own capture instant')
+    p.add_argument('--camera-phases', choices=('random',), default=None,
+                   help='random: free-running cameras, each with a random capture phase in [0, '
+                        'its frame period), drawn from --seed (instead of --camera-offsets-ms)')
     p.add_argument('--camera-rates', default=None, metavar='HZ,HZ,...',
                    help='per-camera frame rates, one value per camera in rig order (e.g. '
                         '30,30,15,15; default: --rate for every camera); the wheel stays at --rate')
@@ -111,6 +114,8 @@ def validate(args):
         raise UserError(f'--jpeg-quality must be within 1..100, got {args.jpeg_quality}')
     # (callers such as a regression suite's generate spec may leave the rig options out)
     n = rig_camera_count(args)
+    if getattr(args, 'camera_phases', None) and getattr(args, 'camera_offsets_ms', None) is not None:
+        raise UserError('--camera-phases and --camera-offsets-ms exclude each other')
     camera_timing(n, args.rate,
                   parse_camera_list(getattr(args, 'camera_offsets_ms', None), n, '--camera-offsets-ms'),
                   parse_camera_list(getattr(args, 'camera_rates', None), n, '--camera-rates'))
@@ -155,6 +160,13 @@ def camera_timing(cameras: int, rate: float, offsets_ms=None, rates=None):
     return [o * 1e-3 for o in offsets_ms], rates
 
 
+def random_phases_ms(seed: int, rates) -> list:
+    """One capture phase per camera, uniform in [0, its frame period), whole microseconds;
+    deterministic for the seed (its own stream: textures and noise stay as without it)."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5EED_FA5E]))
+    return [float(np.floor(rng.uniform(0.0, 1000.0 / r) * 1000.0) / 1000.0) for r in rates]
+
+
 def pose_matrix(x, y, yaw):
     T = np.eye(4)
     T[:3, :3] = Rotation.from_euler('z', yaw).as_matrix()
@@ -165,7 +177,7 @@ def pose_matrix(x, y, yaw):
 def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=480, fx=None,
              k1=0.0, cameras=4, rig_out=None, compression='zstd', progress=True,
              rig_kind='ring', baseline=0.3, camera_offsets_ms=None, camera_rates=None,
-             image_codec=None, jpeg_quality=90):
+             image_codec=None, jpeg_quality=90, camera_phases=None):
     """Render the bag; returns a summary dict (frames, seconds, bag size).
 
     camera_offsets_ms / camera_rates (one per camera): free-running cameras, each captured
@@ -184,6 +196,13 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
         intr = CameraIntrinsics(width, height, fx, fx, intr.cx, intr.cy, intr.distortion)
     texture_seed, noise_seed, wheel_seed = np.random.SeedSequence(seed).spawn(3)
 
+    if camera_phases not in (None, 'random'):
+        raise UserError(f'unknown camera phases {camera_phases!r} (random)')
+    if camera_phases and camera_offsets_ms is not None:
+        raise UserError('--camera-phases and --camera-offsets-ms exclude each other')
+    if camera_phases == 'random':
+        _, cam_rates = camera_timing(len(rig.cameras), rate, None, camera_rates)
+        camera_offsets_ms = random_phases_ms(seed, cam_rates)
     offsets, rates = camera_timing(len(rig.cameras), rate, camera_offsets_ms, camera_rates)
     trajectory = SCENARIOS[scenario](duration)
     n_frames = int(round(duration * rate)) + 1     # both ends: a closed loop ends at its start
@@ -247,7 +266,7 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
     if rig_out:
         rig.save(rig_out)
     size = sum(f.stat().st_size for f in out.iterdir())
-    return {'frames': n_frames, 'images': images_written, 'seconds': elapsed,
+    return {'frames': n_frames, 'images': images_written, 'offsets_ms': [o * 1e3 for o in offsets], 'seconds': elapsed,
             'fps': n_frames / elapsed, 'bytes': size,
             'path_length': trajectory.path_length, 'cameras': rig.names}
 
@@ -262,9 +281,12 @@ def run(args) -> int:
                        camera_offsets_ms=parse_camera_list(args.camera_offsets_ms, n_cameras,
                                                            '--camera-offsets-ms'),
                        camera_rates=parse_camera_list(args.camera_rates, n_cameras, '--camera-rates'),
-                       image_codec=args.compressed, jpeg_quality=args.jpeg_quality)
+                       image_codec=args.compressed, jpeg_quality=args.jpeg_quality,
+                       camera_phases=args.camera_phases)
     print(f'{args.out}: {summary["frames"]} frames x {len(summary["cameras"])} cameras '
           f'({", ".join(summary["cameras"])}), path {summary["path_length"]:.1f} m, '
           f'rendered and written in {summary["seconds"]:.1f} s ({summary["fps"]:.1f} frames/s), '
-          f'{summary["bytes"] / 1e6:.1f} MB')
+          f'{summary["bytes"] / 1e6:.1f} MB'
+          + (f', capture offsets {", ".join(f"{o:g}" for o in summary["offsets_ms"])} ms'
+             if any(summary['offsets_ms']) else ''))
     return 0
