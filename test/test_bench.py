@@ -63,8 +63,9 @@ def targets(**kw):
 
 def test_targets_from_given_numbers():
     t = targets(camera_rate=figures(0.86, 33, 250.0, frames=301),
-                live_offline={15.0: (0.05, 0.02), 30.0: (0.05, 0.30)})
-    assert len(t) == 8
+                slow_camera_rates={15.0: (figures(1.0, 0, 80.0), 0.93), 10.0: (figures(1.0, 0, 60.0), 0.71)},
+                live_offline={10.0: (0.02, 0.01), 15.0: (0.05, 0.02), 30.0: (0.05, 0.30)})
+    assert len(t) == 13
     seq = t['sequential pipeline CPU per frame']
     assert (seq.measured, seq.met) == ('148.0 ms', False)
     over = next(v for k, v in t.items() if k.startswith('graph overhead'))
@@ -81,8 +82,15 @@ def test_targets_from_given_numbers():
     cam = next(v for k, v in t.items() if k.startswith('camera rate'))
     assert cam.measured == 'RTF 0.86, 33 of 301 dropped, p99 250 ms' and cam.met is False
     live = [v for k, v in t.items() if k.startswith('live')]
-    assert [v.met for v in live] == [True, False]
-    assert live[1].measured == 'ATE 5.0 %, final drift 30.0 % apart'
+    assert [v.met for v in live] == [True, True, False]
+    assert live[2].measured == 'ATE 5.0 %, final drift 30.0 % apart'
+    # 15 and 10 Hz: every frame, and at most one core at the reference speed
+    slow = [v for k, v in t.items() if k.startswith('camera rate (4 x 640x480 at 1')]
+    assert [v.met for v in slow] == [True, True]
+    cores = [v for k, v in t.items() if k.startswith('cores needed')]
+    assert [(v.measured, v.met) for v in cores] == [('0.93', True), ('0.71', True)]
+    over = targets(slow_camera_rates={15.0: (figures(1.0, 0, 80.0), 1.32)})
+    assert next(v for k, v in over.items() if k.startswith('cores needed, 4 x 640x480 at 15')).met is False
 
 
 def test_targets_met_at_their_bounds_and_not_run_when_skipped():
@@ -92,7 +100,7 @@ def test_targets_met_at_their_bounds_and_not_run_when_skipped():
     measured = [v for v in t.values() if v.met is not None]
     assert len(measured) == 5 and all(v.met for v in measured)
     skipped = [v for v in t.values() if v.met is None]
-    assert [v.measured for v in skipped] == ['skipped (--skip-camera-rate)'] + ['skipped (--skip-live-vs-offline)'] * 2
+    assert [v.measured for v in skipped] == ['skipped (--skip-camera-rate)'] * 5 + ['skipped (--skip-live-vs-offline)'] * 3
     # a drop, or a p99 one ms over, misses
     assert not bench_targets.rate_target('x', figures(1.0, 1, 10.0), 50.0).met
     assert not bench_targets.rate_target('x', figures(1.0, 0, 51.0), 50.0).met
@@ -180,3 +188,19 @@ def test_decode_cost_row_per_input_kind():
     text = '\n'.join(decode_cost.lines(rows))
     for name, size, ms in rows:
         assert f'| {name} | {size} | {ms:.2f} |' in text
+
+
+def test_cores_needed_per_camera_rate_here_and_at_the_reference_speed():
+    from pathlib import Path
+
+    from multicam_ego_motion.bench.camera_rate import CameraRate, RateRun
+    run = lambda graph_ms, player_ms: RateRun(figures(1.0, 0, 50.0), Path('.'), Path('.'), 'reused', 150,
+                                              10.0, graph_ms, player_ms, 800.0)
+    # 4 cameras: (20 + 2) ms per image -> 88 ms per frame
+    c = CameraRate([], {30.0: run(12.0, 1.0), 15.0: run(20.0, 2.0), 10.0: run(25.0, 2.5)}, 4)
+    assert c.cores(15.0) == pytest.approx(88.0 * 15 / 1000)
+    assert c.cores(10.0) == pytest.approx(110.0 * 10 / 1000)
+    assert c.figures is c.runs[30.0].figures and c.cpu_per_image_ms == 12.0
+    # on a machine at 12 us per LK point the reference (6 us) machine needs half
+    line = c.cores_line(12.0)
+    assert '15 Hz 1.32' in line and 'at 6 us per Lucas-Kanade point: 30 Hz 0.78, 15 Hz 0.66, 10 Hz 0.55' in line

@@ -1,6 +1,6 @@
 """Accuracy live equals accuracy offline, a part of `ego-motion bench`.
 
-On the VGA bags at 15 and 30 Hz (camera_rate.vga_bag), the graph on M = 2 in lockstep
+On the VGA bags at 10, 15 and 30 Hz (camera_rate.vga_bag), the graph on M = 2 in lockstep
 (offline: every frame, in order) and in rate mode (live: at the bag's rate, frames the graph
 cannot keep up with are dropped), both scored against the bag's ground truth: ATE and final
 drift of each, and how far live is from offline relative to offline.
@@ -12,7 +12,7 @@ from typing import Dict, Tuple
 from multicam_ego_motion.bench.camera_rate import WORKERS, vga_bag
 from multicam_ego_motion.bench.measures import graph_run, per_frame_ms, relative_difference, score_run
 
-RATES_HZ = (15.0, 30.0)
+RATES_HZ = (10.0, 15.0, 30.0)
 
 
 @dataclass

@@ -7,7 +7,7 @@ with the sequential runs just before and after it: a shared host's speed varies 
 within minutes), the graph in rate mode at the bag's rate on M = 2 (real-time factor,
 latency from the player publishing a frame to /odom arriving, dropped frames, peak memory),
 the transport's floor (the same graph with quarters that do no work: transport_floor.py), the
-camera-rate row (four 640x480 cameras at 30 Hz in rate mode on M = 2: camera_rate.py),
+camera-rate rows (four 640x480 cameras at 30, 15 and 10 Hz in rate mode on M = 2: camera_rate.py),
 accuracy live vs offline at 15 and 30 Hz (live_offline.py), the track CPU per tracked
 point, the targets, one row each with met or missed (targets.py), and the paper's model
 (parallel_time_model) fed with the median stage times measured in the M = 2 lockstep run,
@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from multicam_ego_motion.bench import machine_speed
+from multicam_ego_motion.bench.camera_rate import CAMERA_RATE_HZ, LK_REFERENCE_US
 from multicam_ego_motion.bench.measures import (graph_run, per_frame_ms, rate_figures, read_statuses,
                                                 sequential_run, track_cost, write_latency_csv)
 from multicam_ego_motion.errors import UserError
@@ -125,9 +126,11 @@ def run(args) -> int:
         from multicam_ego_motion.bench.camera_rate import camera_rate
         cam_rate = camera_rate(bags_folder, out, params)
         lines += [''] + cam_rate.lines
+        lines.insert(lines.index(speed.line()) + 1, cam_rate.cores_line(speed.lk_us_per_point))
     if not args.skip_live_vs_offline:
         from multicam_ego_motion.bench.live_offline import live_vs_offline
-        reuse = {30.0: (cam_rate.run_dir, cam_rate.cpu_per_image_ms)} if cam_rate else None
+        reuse = ({r: (x.run_dir, x.cpu_per_image_ms) for r, x in cam_rate.runs.items()}
+                 if cam_rate else None)
         live_off = live_vs_offline(bags_folder, out, params, live_runs=reuse)
         lines += ['', 'Accuracy live (rate mode) vs offline (lockstep), against the bag\'s ground truth; '
                   'apart = |live - offline| / offline:', ''] + live_off.lines
@@ -170,6 +173,8 @@ def run(args) -> int:
         graph_cpu_m2_ms=d.best[2][2], replay_cpu_m2_ms=d.best[2][3], speedup_bound=d.ceiling,
         floor_bound=floor.allowed_speedup(d.Ts) if floor else None, m1_seq_ms=d.sequential_around(1)[0],
         default_rate=rate, camera_rate=cam_rate.figures if cam_rate else None,
+        slow_camera_rates=({r: (cam_rate.runs[r].figures, cam_rate.cores(r) * LK_REFERENCE_US / speed.lk_us_per_point)
+                            for r in cam_rate.runs if r != CAMERA_RATE_HZ} if cam_rate else None),
         live_offline=live_off.relative if live_off else None,
         skipped_camera_rate='--skip-camera-rate', skipped_live_offline='--skip-live-vs-offline')
     lines += ['', '## Targets', ''] + bench_targets.table(targets)
