@@ -61,7 +61,7 @@ NODE_PARAMETERS = {
     'path_min_turn_rad': (0.1, '... or every this much rotation', 0.0, 3.15),
     'path_publish_period_s': (1.0, '/ego_motion/path is republished at most this often (stamp time; it costs ~10 us per pose)', 0.0, 3600.0),
     'odom_rate_hz': (0.0, '/odom, /tf and /ego_motion/path: 0 = after every fused update (each camera stamp of free-running cameras, each frame of a synchronised rig); > 0 = at most this often, each with the newest state and its stamp (lockstep replay sets 0: the player waits for /odom)', 0.0, 1000.0),
-    'max_lag_s': (0.25, 'live: when the fused poses lag their frames by more than this, the quarters process every 2nd, 3rd ... frame until they catch up (/ego_motion/frame_schedule); 0 processes every frame (lockstep replay)', 0.0, 10.0),
+    'max_lag_s': (0.25, 'live: when the fused poses lag their frames by more than this, the quarters process only as many frames as the graph keeps up with, evenly spread (7 of 8 ... 1 of 6) until they catch up (/ego_motion/frame_schedule; /diagnostics achieved_rate_hz against camera_rate_hz); 0 processes every frame (lockstep replay)', 0.0, 10.0),
 }
 
 
@@ -225,8 +225,9 @@ class GeneralArbiterNode(Node):
             self.issued.add(schedule)
             self.pub_schedule.publish(Int64MultiArray(data=schedule.to_list()))
             self.get_logger().info(
-                f'behind the cameras: processing one frame in {schedule.stride} from '
-                f'{schedule.from_ns / 1e9:.3f} s' if schedule.stride > 1 else
+                f'behind the cameras: processing {schedule.keep} frame(s) in {schedule.stride}, '
+                f'{self.governor.achieved_rate_hz():.1f} of {self.governor.camera_rate_hz():.1f} Hz, from '
+                f'{schedule.from_ns / 1e9:.3f} s' if schedule.keep < schedule.stride else
                 f'caught up: processing every frame from {schedule.from_ns / 1e9:.3f} s')
 
     def publish_map_scale(self):
@@ -302,7 +303,9 @@ class GeneralArbiterNode(Node):
              'scale_observations': self.fusion.scale.n_observations,
              'rig_fit': self.fusion.scale.fit_summary(),
              'cameras_used': ','.join(fused.cameras_used), 'cameras_missing': ','.join(missing),
-             'frame_stride': self.governor.stride, 'arbiter_ms': ms,
+             'frame_stride': self.governor.stride, 'frames_kept': f'{self.governor.keep}/{self.governor.stride}',
+             'camera_rate_hz': round(self.governor.camera_rate_hz() or 0.0, 3),
+             'achieved_rate_hz': round(self.governor.achieved_rate_hz() or 0.0, 3), 'arbiter_ms': ms,
              'estimates_off_schedule': self.off_schedule,
              'sync_timed_out': group.timed_out}), self.diag_sink, self.pub_diag)
 

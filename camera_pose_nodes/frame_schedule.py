@@ -11,39 +11,63 @@ frame stamps) and publishes a FrameSchedule on /ego_motion/frame_schedule: from 
 no quarter has taken yet (two frames of the old schedule after the newest estimate the
 general arbiter has received, so that the schedule reaches every quarter before it applies: a
 worker's executor may hand its quarters the fused pose before the schedule published just
-ahead of it, and a quarter may run ahead of the fused poses), every `stride`-th frame.
-Quarters apply it to the frames they take (ScheduleBook), so the choice depends on stamps
-alone.
+ahead of it, and a quarter may run ahead of the fused poses), `keep` frames of every
+`stride`, spread evenly. Quarters apply it to the frames they take (ScheduleBook), so the
+choice depends on stamps alone.
+
+Why fractions: a graph that needs 1.4 frame periods per frame can take 5 frames of 7; every
+second frame (the only integer stride that keeps up) dropped half of them where 2 in 7 had
+to go. Kept frames spread evenly (k * keep mod stride < keep): the gaps between them differ
+by one period at most.
 """
 from dataclasses import dataclass
+from fractions import Fraction
 from typing import List, Optional
 
 LEAD_FRAMES = 2      # frames of the old schedule before a new one applies
+MAX_DENOMINATOR = 8  # kept fractions are keep / stride with stride up to this (or max_stride)
 
 
 @dataclass(frozen=True)
 class FrameSchedule:
-    """From `from_ns` on (a frame every quarter processed), the frames at from_ns + k *
-    stride * period_ns (nearest stamp) are processed."""
+    """From `from_ns` on (a frame every quarter processed), of the frames at from_ns + k *
+    period_ns (nearest stamp) those with k * keep mod stride < keep are processed: `keep` of
+    every `stride`, evenly spread (keep 1: every stride-th)."""
     from_ns: int
     period_ns: int
     stride: int
+    keep: int = 1
 
     def takes(self, stamp_ns: int) -> bool:
-        if self.stride <= 1 or stamp_ns <= self.from_ns:
+        if self.keep >= self.stride or stamp_ns <= self.from_ns:
             return True
         k = round((stamp_ns - self.from_ns) / self.period_ns)
-        return k % self.stride == 0
+        return (k * self.keep) % self.stride < self.keep
+
+    @property
+    def fraction(self) -> Fraction:
+        return Fraction(min(self.keep, self.stride), self.stride)
 
     def to_list(self) -> List[int]:
-        return [int(self.from_ns), int(self.period_ns), int(self.stride)]
+        return [int(self.from_ns), int(self.period_ns), int(self.stride), int(self.keep)]
 
     @classmethod
     def from_list(cls, values) -> 'FrameSchedule':
         values = [int(v) for v in values]
-        if len(values) != 3 or values[1] <= 0 or values[2] < 1:
-            raise ValueError(f'a frame schedule is [from_ns, period_ns > 0, stride >= 1], got {values}')
+        if len(values) == 3:
+            values.append(1)
+        if len(values) != 4 or values[1] <= 0 or values[2] < 1 or not 1 <= values[3] <= values[2]:
+            raise ValueError('a frame schedule is [from_ns, period_ns > 0, stride >= 1, '
+                             f'1 <= keep <= stride], got {values}')
         return cls(*values)
+
+
+def kept_fractions(max_stride: int) -> List[Fraction]:
+    """The fractions of frames a schedule may keep, ascending: keep / stride with stride up
+    to MAX_DENOMINATOR, none below 1 / max_stride."""
+    den = max(MAX_DENOMINATOR, max_stride)
+    return sorted({Fraction(k, d) for d in range(1, den + 1) for k in range(1, d + 1)
+                   if Fraction(k, d) >= Fraction(1, max_stride)})
 
 
 class ScheduleBook:
@@ -72,27 +96,30 @@ class ScheduleBook:
 
 
 class FrameGovernor:
-    """The stride that lets the graph keep up with its cameras.
+    """The fraction of frames that lets the graph keep up with its cameras.
 
     The lag is the node's clock at fusion minus the frame's stamp: the driver's stamps and
     the clock agree live, and a replay in rate mode runs the general arbiter on the bag's
     /clock. A lag over `max_lag_s` that is still growing (the graph is slower than the
-    frames it takes) raises the stride to one that covers a frame's cost as the growth shows
-    it; a lag over twice `max_lag_s` that no longer grows (a backlog) raises it by one until
-    the backlog drains. A steady lag is the time one frame takes
-    through the graph (a frame waits for the fused pose of the one before it), so a frame
-    every floor(lag / period) + 1 periods is what the graph can take: the stride comes down
-    to that. Changes are at least `hold_frames` fused frames apart (a change takes that long
-    to show). Clocks that disagree by more than `clock_sanity_s` (a bag played without
-    /clock) turn the governor off rather than skip frames on a wrong reading."""
+    frames it takes) lowers the fraction to one whose mean gap between frames covers a
+    frame's cost as the growth shows it; a lag over twice `max_lag_s` that no longer grows (a
+    backlog) lowers it a step until the backlog drains. A steady lag is the time one frame
+    takes through the graph (a frame waits for the fused pose of the one before it), so the
+    largest fraction whose mean gap is `margin` longer than that is what the graph can take:
+    the fraction comes back up to that. Changes are at least `hold_frames` fused frames apart
+    (a change takes that long to show). Clocks that disagree by more than `clock_sanity_s` (a
+    bag played without /clock) turn the governor off rather than skip frames on a wrong
+    reading."""
 
     def __init__(self, max_lag_s: float, max_stride: int = 6, hold_frames: int = 6,
-                 clock_sanity_s: float = 10.0):
+                 clock_sanity_s: float = 10.0, margin: float = 0.1):
         self.max_lag_s = float(max_lag_s)
         self.max_stride = int(max_stride)
         self.hold_frames = int(hold_frames)
         self.clock_sanity_s = float(clock_sanity_s)
-        self.stride = 1
+        self.margin = float(margin)
+        self.stride = 1                  # the kept fraction is keep / stride
+        self.keep = 1
         self.period_ns: Optional[int] = None
         self.last_stamp_ns: Optional[int] = None
         # since the last change, oldest first; the last 2 * hold_frames are all the rules read
@@ -103,6 +130,21 @@ class FrameGovernor:
     @property
     def enabled(self) -> bool:
         return self.max_lag_s > 0.0 and not self.clock_mismatch
+
+    @property
+    def fraction(self) -> Fraction:
+        return Fraction(self.keep, self.stride)
+
+    def achieved_rate_hz(self) -> Optional[float]:
+        """Frames processed per second of camera time (None before the period is known)."""
+        return None if self.period_ns is None else float(self.fraction) * 1e9 / self.period_ns
+
+    def camera_rate_hz(self) -> Optional[float]:
+        return None if self.period_ns is None else 1e9 / self.period_ns
+
+    def _at_most(self, f: float) -> Fraction:
+        fits = [x for x in kept_fractions(self.max_stride) if x <= f]
+        return fits[-1] if fits else Fraction(1, self.max_stride)
 
     def update(self, stamp_ns: int, now_ns: int, newest_ns: Optional[int] = None) -> Optional[FrameSchedule]:
         """After fusing frame `stamp_ns` at clock `now_ns`: a new schedule, or None.
@@ -125,35 +167,46 @@ class FrameGovernor:
         if self.period_ns is None or len(self.lags) < self.hold_frames:
             return None
         recent = self.lags[-self.hold_frames:]
-        growing = recent[-1] - recent[0] > 0.5 * self.period_ns * 1e-9
-        stride = self.stride
+        P = self.period_ns * 1e-9
+        gap = P / float(self.fraction)             # the mean gap between frames processed
+        growing = recent[-1] - recent[0] > 0.5 * P
+        fraction = self.fraction
+        steps = kept_fractions(self.max_stride)
         if growing:
             if lag > self.max_lag_s:
-                # a frame costs the graph its stride's periods plus what the lag grows by
-                # per frame: go straight to a stride that covers it
-                cost_ns = self.stride * self.period_ns + (recent[-1] - recent[0]) * 1e9 / (len(recent) - 1)
-                stride = min(max(self.stride + 1, int(cost_ns // self.period_ns) + 1), self.max_stride)
+                # a frame costs the graph its gap plus what the lag grows by per frame: go
+                # straight to a fraction that covers it
+                cost = gap + (recent[-1] - recent[0]) / (len(recent) - 1)
+                lower = [x for x in steps if x < self.fraction]
+                fraction = min(self._at_most(P / (cost * (1.0 + self.margin))),
+                               lower[-1] if lower else self.fraction)
         elif lag > 2 * self.max_lag_s:
-            stride = min(self.stride + 1, self.max_stride)      # keeping up: drain the backlog
+            lower = [x for x in steps if x < self.fraction]    # keeping up: drain the backlog
+            fraction = lower[-1] if lower else self.fraction
         elif len(self.lags) >= 2 * self.hold_frames:
-            steady = sorted(recent)[len(recent) // 2] * 1e9
-            stride = max(1, min(self.stride, int(steady // self.period_ns) + 1))
-        if stride == self.stride:
+            steady = sorted(recent)[len(recent) // 2]
+            fraction = max(self.fraction, self._at_most(P / (steady * (1.0 + self.margin))))
+            fraction = min(fraction, Fraction(1))
+        if fraction == self.fraction:
             return None
         # From a frame of the old schedule after the newest estimate received, not after the
         # fused frame: a quarter whose fused poses time out runs ahead of them, and a schedule
         # starting behind it left frames it had processed and the others skipped (fused from
         # part of the rig). Not after the clock's now either: under load that is seconds
-        # ahead, and the stride would come that much too late.
+        # ahead, and the stride would come that much too late. (Whole old strides from a
+        # processed frame land on frames the old schedule processes.)
         step = self.stride * self.period_ns
         ahead = max(0, int(newest_ns) - int(stamp_ns)) if newest_ns is not None else 0
         start = int(stamp_ns) + (LEAD_FRAMES + -(-ahead // step)) * step
-        self.stride = stride
+        self.stride, self.keep = fraction.denominator, fraction.numerator
         self.lags = []
-        return FrameSchedule(start, self.period_ns, stride)
+        return FrameSchedule(start, self.period_ns, self.stride, self.keep)
 
     def get_state(self) -> dict:
         return {k: (list(v) if isinstance(v, list) else v) for k, v in vars(self).items()}
 
     def set_state(self, s: dict):
+        s = dict(s)
+        s.setdefault('keep', 1)
+        s.setdefault('margin', 0.1)
         vars(self).update(s)

@@ -16,6 +16,18 @@ def test_a_schedule_takes_every_stride_th_frame_from_its_start_by_stamp_alone():
     assert FrameSchedule.from_list(s.to_list()) == s
     with pytest.raises(ValueError):
         FrameSchedule.from_list([T0, 0, 2])
+    with pytest.raises(ValueError):
+        FrameSchedule.from_list([T0, P, 3, 4])         # keeps more than it has
+
+
+def test_a_schedule_keeps_a_fraction_of_the_frames_evenly_spread():
+    s = FrameSchedule(T0, P, 7, 5)                    # 5 of every 7
+    taken = [k for k in range(1, 29) if s.takes(T0 + k * P)]
+    assert len(taken) == 20
+    gaps = {b - a for a, b in zip(taken, taken[1:])}
+    assert gaps == {1, 2}                              # never two skipped in a row
+    assert FrameSchedule.from_list(s.to_list()) == s and float(s.fraction) == pytest.approx(5 / 7)
+    assert FrameSchedule.from_list([T0, P, 3]) == FrameSchedule(T0, P, 3, 1)   # [from, period, stride]
 
 
 def test_a_book_applies_each_schedule_from_its_start_and_survives_a_hand_over():
@@ -64,6 +76,33 @@ def test_the_governor_keeps_a_slow_graph_within_its_lag_and_returns_to_every_fra
     gov.max_lag_s = 0.1
     strides, _ = simulate(gov, cost_frames=0.5, n=200)
     assert strides[-1] == 1
+
+
+def kept_share(governor, cost_frames, n=300):
+    book, clock, kept = ScheduleBook(), T0, []
+    lags = []
+    for k in range(n):
+        stamp = T0 + k * P
+        if not book.takes(stamp):
+            kept.append(False)
+            continue
+        kept.append(True)
+        clock = max(clock, stamp) + cost_frames * P
+        s = governor.update(stamp, clock)
+        if s is not None:
+            book.add(s)
+        lags.append((clock - stamp) / 1e9)
+    return sum(kept[-100:]) / 100, lags
+
+
+def test_the_governor_drops_as_few_frames_as_it_must():
+    """A graph that needs 1.3 periods a frame keeps up with about 3 frames in 4, where every
+    second frame (an integer stride) would drop half."""
+    gov = FrameGovernor(max_lag_s=0.1)
+    share, lags = kept_share(gov, cost_frames=1.3)
+    assert 0.6 <= share <= 1 / 1.3 and max(lags[-30:]) <= 0.1
+    assert gov.fraction < 1 and gov.achieved_rate_hz() == pytest.approx(float(gov.fraction) * 30, rel=1e-3)
+    assert gov.camera_rate_hz() == pytest.approx(30.0, rel=1e-3)
 
 
 def test_the_governor_is_off_in_lockstep_and_when_the_clocks_disagree():

@@ -37,6 +37,15 @@ def test_the_general_arbiter_raises_the_stride_and_says_so(overloaded):
     reported = [int(kv.value) for m in diag for s in m.status if s.name == 'ego_motion/general_arbiter'
                 for kv in s.values if kv.key == 'frame_stride']
     assert max(reported) >= 2
+    # and the rate it achieves against the cameras'
+    rates = [{kv.key: kv.value for kv in s.values} for m in diag for s in m.status
+             if s.name == 'ego_motion/general_arbiter']
+    behind = [r for r in rates if int(r['frame_stride']) >= 2]
+    assert behind
+    for r in behind:
+        keep, stride = (int(x) for x in r['frames_kept'].split('/'))
+        assert float(r['achieved_rate_hz']) == pytest.approx(float(r['camera_rate_hz']) * keep / stride, rel=1e-3)
+        assert float(r['achieved_rate_hz']) < float(r['camera_rate_hz'])
     skipped = sum(int(kv.value) for m in diag for s in m.status if '/q' in s.name
                   for kv in s.values if kv.key == 'images_skipped')
     assert skipped > 0
