@@ -185,8 +185,10 @@ class FrameGovernor:
             fraction = lower[-1] if lower else self.fraction
         elif len(self.lags) >= 2 * self.hold_frames:
             steady = sorted(recent)[len(recent) // 2]
-            fraction = max(self.fraction, self._at_most(P / (steady * (1.0 + self.margin))))
-            fraction = min(fraction, Fraction(1))
+            # (a lag of zero or less: a clock that reads the frames' stamps, e.g. /clock from
+            # the player: every frame)
+            cap = P / (steady * (1.0 + self.margin)) if steady > 0.0 else 1.0
+            fraction = min(max(self.fraction, self._at_most(cap)), Fraction(1))
         if fraction == self.fraction:
             return None
         # From a frame of the old schedule after the newest estimate received, not after the

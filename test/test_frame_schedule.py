@@ -105,6 +105,17 @@ def test_the_governor_drops_as_few_frames_as_it_must():
     assert gov.camera_rate_hz() == pytest.approx(30.0, rel=1e-3)
 
 
+def test_a_lag_of_zero_or_less_keeps_every_frame():
+    """A clock that reads the frame stamps themselves (or runs behind them): nothing to skip,
+    and nothing to divide by."""
+    for offset in (0, -P // 2):
+        gov = FrameGovernor(max_lag_s=0.1)
+        gov.stride, gov.keep = 2, 1                       # after a slow spell
+        made = [gov.update(T0 + k * P, T0 + k * P + offset) for k in range(30)]
+        last = [s for s in made if s is not None][-1]
+        assert gov.fraction == 1 and (last.keep, last.stride) == (1, 1)
+
+
 def test_the_governor_is_off_in_lockstep_and_when_the_clocks_disagree():
     off = FrameGovernor(max_lag_s=0.0)
     assert set(simulate(off, cost_frames=3.0)[0]) == {1}
