@@ -220,3 +220,27 @@ def test_odom_rate():
     from arbiter_node.general_arbiter_node import odom_due
     assert odom_due(None, 5, 10.0) and odom_due(0, 1, 0.0)
     assert not odom_due(0, 99_999_999, 10.0) and odom_due(0, 100_000_000, 10.0)
+
+
+def test_a_camera_alone_at_its_stamp_weighs_less_than_one_of_a_frame():
+    """lone_camera_covariance_scale: a camera fused alone (free-running cameras) pulls the
+    fused pose from the prediction less than its own covariance says; cameras fused together
+    are not touched."""
+    import copy
+
+    def pull(scale, lone):
+        g = GeneralFusion(RIG, {'lone_camera_covariance_scale': scale})
+        rng = np.random.default_rng(4)
+        for k in range(5):
+            g.process(k * DT_NS, cams(rng, truth(k * 0.05), k * DT_NS))
+        stamp = 5 * DT_NS
+        predicted = copy.deepcopy(g).process(stamp, {}).T_odom_base
+        T = se3.perturb(predicted, [0.01, 0, 0, 0, 0, 0])
+        est = {n: PoseEstimate(stamp, T, np.eye(6) * 1e-4, source=n, state='tracking')
+               for n in (['back'] if lone else RIG.names)}
+        f = g.process(stamp, est)
+        assert f.cameras_used
+        return float(np.linalg.norm(f.T_odom_base[:3, 3] - predicted[:3, 3]))
+    lone1, lone2 = pull(1.0, True), pull(2.0, True)
+    assert 0.0 < lone2 < 0.8 * lone1
+    assert pull(1.0, False) == pull(2.0, False)
