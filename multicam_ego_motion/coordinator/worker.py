@@ -265,7 +265,17 @@ class Worker:
 
     def send(self, msg):
         with self.send_lock:
-            self.conn.send(msg)
+            try:
+                self.conn.send(msg)
+            except OSError as e:
+                # The coordinator is gone as surely as when its heartbeats stop: a link that
+                # went silent fills the send buffer and the send times out with the socket's
+                # heartbeat timeout (socket.timeout is an OSError), often before the reader
+                # notices. End the same way: nodes stopped, exit 3 (not a traceback).
+                if self.lost is None:
+                    self.lost = (f'no heartbeat for {control.HEARTBEAT_TIMEOUT_S:.0f} s'
+                                 if isinstance(e, socket.timeout) else str(e) or 'connection closed')
+                raise SystemExit(0) from e
 
     def read_commands(self):
         # Over TCP the coordinator pings every second: silence means its host is gone.
