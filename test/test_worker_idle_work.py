@@ -24,4 +24,3 @@ def test_a_node_that_offers_work_again_is_queued_once_in_first_offer_order(rclpy
         worker.gc.close()
         worker.executor.shutdown()
         worker.node.destroy_node()
-
