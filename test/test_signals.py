@@ -215,7 +215,8 @@ def test_signal_at_a_random_moment_of_a_replay(name, target, tmp_path, default_f
             os.killpg(proc.pid, signal.SIGKILL)
             proc.communicate()
     why = f'{name} to the {target} at {moment}, flushed {flushed} /odom (seed {SEED}): {stderr[-2000:]}'
-    assert process_table.wait_gone(process_table.marked(str(out)), 10.0) == [], why
+    left = process_table.wait_gone(process_table.marked(str(out)), 10.0)
+    assert left == [], (why, [process_table.cmdline(p) for p in left])
     bag_dir = out / 'output'
 
     if sig == signal.SIGKILL:

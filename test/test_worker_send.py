@@ -34,3 +34,24 @@ def test_a_send_that_times_out_ends_the_worker_as_a_lost_heartbeat():
     with pytest.raises(SystemExit):
         Worker.send(w, (control.COSTS, []))
     assert w.lost == 'connection closed'
+
+
+def test_a_worker_whose_orderly_stop_hangs_still_ends():
+    """The coordinator gone (its channel closed) while the worker's main thread is stuck (a
+    node's teardown, DDS on a loaded machine): the process ends anyway, with status 3, within
+    EXIT_GRACE_S, so no worker outlives its coordinator."""
+    import subprocess
+    import sys
+    code = '''
+import queue, threading, time, types
+from multicam_ego_motion.coordinator.worker import Worker
+class Conn:
+    is_tcp = False
+    def recv(self, timeout=None):
+        raise EOFError()
+w = types.SimpleNamespace(conn=Conn(), inbox=queue.Queue(), wake=types.SimpleNamespace(trigger=lambda: None), lost=None)
+threading.Thread(target=Worker.read_commands, args=(w,), daemon=True).start()
+time.sleep(600)     # the main thread never gets to stop the nodes
+'''
+    proc = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 3, proc.stderr

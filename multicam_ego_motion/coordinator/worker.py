@@ -28,6 +28,7 @@ workers in order (interrupt.py).
 """
 import argparse
 import ctypes
+import math
 import os
 import pickle
 import queue
@@ -62,6 +63,25 @@ DIAG_STRAGGLER_S = 0.25      # a frame's /diagnostics batch still incomplete aft
 # wake-up of its process on the same cores, and the allocation needs trends, not each frame.
 COSTS_EVERY = 8               # frames per COSTS message
 COSTS_MAX_AGE_S = 0.5         # ... or sooner, once the oldest waited this long
+EXIT_GRACE_S = 5.0            # longest orderly stop once the coordinator is gone or SIGTERM came
+
+
+def exit_within(grace_s: float, code: int):
+    """The process ends at most grace_s from now (with `code`), whatever its orderly stop is
+    waiting for: a worker must not outlive its coordinator. A daemon thread, so an orderly
+    stop that finishes first is not held up; and, a second later, the kernel's SIGALRM, whose
+    default action ends the process even when native code holds the interpreter's lock and
+    spins (rclpy's destroy_node racing its own signal handler's shutdown did, for minutes)."""
+    timer = threading.Timer(grace_s, os._exit, (code,))
+    timer.daemon = True
+    timer.start()
+    signal.alarm(int(math.ceil(grace_s)) + 1)
+
+
+# A signal stops the worker: rclpy's own handler shuts the context down from its thread while
+# the nodes would be destroyed from this one (a race that can spin forever in destroy_node).
+# The nodes then end with the process instead.
+stopped_by_signal = threading.Event()
 
 
 def _die_with_parent():
@@ -294,6 +314,7 @@ class Worker:
             self.lost = str(e) or 'connection closed'
         self.inbox.put((control.STOP,))     # coordinator gone: end with it
         self.wake.trigger()
+        exit_within(EXIT_GRACE_S, 3 if self.lost else 0)
 
     def serve(self):
         while True:
@@ -449,9 +470,10 @@ class Worker:
         try:
             self._spin()
         finally:
-            for node in self.hosted.values():
-                node.destroy_node()
-            self.node.destroy_node()
+            if not stopped_by_signal.is_set():
+                for node in self.hosted.values():
+                    node.destroy_node()
+                self.node.destroy_node()
 
 
 def _join(args, key):
@@ -501,6 +523,8 @@ def run_remote(args) -> int:
 
     def on_signal(signum, frame):
         signals.append(signum)
+        stopped_by_signal.set()
+        exit_within(EXIT_GRACE_S, 128 + signum)
         raise SystemExit(0)
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, on_signal)
@@ -542,6 +566,12 @@ def main_remote(argv=None):
         return 2
 
 
+def _stop_on_sigterm(signum, frame):
+    stopped_by_signal.set()
+    exit_within(EXIT_GRACE_S, 0)
+    raise SystemExit(0)
+
+
 def main(argv=None):
     for sig in (signal.SIGINT, signal.SIGHUP):   # the coordinator stops us (module docstring)
         signal.signal(sig, signal.SIG_IGN)
@@ -568,7 +598,7 @@ def main(argv=None):
     for kind in ('quarter', 'camera_arbiter', 'general_arbiter'):
         node_class(kind)
     conn = control.connect(args.control)
-    signal.signal(signal.SIGTERM, lambda *a: (_ for _ in ()).throw(SystemExit(0)))
+    signal.signal(signal.SIGTERM, _stop_on_sigterm)
     # rclpy's SIGTERM handler wakes the executor's blocking wait (shuts the context down).
     rclpy.init(signal_handler_options=rclpy.signals.SignalHandlerOptions.SIGTERM)
     # EGO_MOTION_PROFILE_DIR=DIR: each worker writes cProfile stats to
