@@ -77,7 +77,7 @@ PARAMETERS = {
     'scale_snap_relative_std': (0.1, 'scale_state: the map is rescaled once the scale\'s relative std is below this', 1e-4, 1.0),
     'scale_snap_min_change': (0.01, 'scale_state: after the first rescale, rescale again when the scale moved this much (relative)', 0.0, 1.0),
     'scale_drift_per_sqrt_s': (0.01, 'scale_state: relative scale drift of a map without a scale source per sqrt(s) (the scale estimate\'s random walk)', 0.0, 1.0),
-    'road_scale': (True, "over a road (the rig's floor_level false, no stereo pair): measure the map scale from each camera's road points between frames (their plane's homography, metric from the camera height whatever its pitch: road_plane) and rescale the map (scale_state)", None, None),
+    'road_scale': (True, "over a road (the rig's floor_level false, no stereo pair): measure the map scale from each camera's road points between frames (road_plane: their depth on the road against their depth triangulated with the fused step; the road homography's step until road_pitch knows the road's normal), rescale the map (scale_state) and measure the body's speed with it (road_speed)", None, None),
     'road_twist': (True, "over a road (road_scale): each camera's motion between the two previous frames from all its tracks, rotation and direction from the essential matrix, length from the road's homography (road_motion), measures the body's twist before the cameras' poses are fused (without the road's length: the rotation only); independent of the quarters' maps, which break at car speed", None, None),
     'road_twist_rotation_std_rad': (0.005, 'road_twist: std of the measured rotation between frames (rad)', 1e-5, 1.0),
     'road_twist_direction_std_rad': (0.03, 'road_twist: std of the measured direction of travel (rad)', 1e-4, 1.0),
@@ -86,8 +86,12 @@ PARAMETERS = {
     'road_twist_min_points': (30, 'road_twist: essential-matrix inliers a camera needs', 8, 10000),
     'road_twist_min_parallax_deg': (0.3, 'road_twist: median rotation-compensated parallax a camera needs (deg; below it the direction is noise)', 0.0, 45.0),
     'road_scale_prior_std': (0.1, 'road_scale: the map scale\'s relative std at the start (the road points of one frame are metric to about the camera\'s pitch to the road)', 1e-3, 10.0),
-    'road_scale_std': (0.3, 'road_scale: relative std of one observation (one camera, two frames; single fits scatter by about this)', 1e-3, 10.0),
+    'road_scale_std': (0.15, 'road_scale: relative std of one observation (one camera, two frames)', 1e-3, 10.0),
     'road_scale_threshold': (2.5, 'road_scale: RANSAC threshold of the road homography, in point stds', 0.5, 20.0),
+    'road_pitch_from_travel': (True, "road_scale, road_twist: the road's normal square to the body's direction of travel (the median slope of the fused steps: road_pitch), not the body's z axis; a camera's pitch to the road is rarely known to a degree (KITTI's: about 1), and 1 deg moves the road's scale by 5-10 %", None, None),
+    'road_scale_known_step': (True, "road_scale: the fused step between the frames made metric by the road's depth of its road tracks against their depth triangulated with that step (road_plane.road_scale: one unknown, once road_pitch_from_travel knows the road's normal), not the road homography's own step (eight unknowns: 2-3 times the scatter)", None, None),
+    'road_speed': (True, "road_scale: the metric step of the last road observation (the cameras' median) measures the body's forward speed every frame, as a wheel would; the rescales of the map alone left KITTI 07's scale 20 % long after a turn", None, None),
+    'road_speed_std': (0.05, 'road_speed: relative std of that speed', 1e-3, 10.0),
     'road_scale_min_step_m': (0.1, 'road_scale: shorter camera steps observe nothing (points above the road move as it does)', 1e-3, 10.0),
     'scale_snap_about': ('origin', 'scale_state: rescale the map about the odom origin (`origin`: past and future odometry at one scale, a jump now) or the current pose (`current`: no jump, a kink)', None, None),
 }
@@ -328,6 +332,16 @@ class GeneralFusion:
         fixed_by, scale_std, odom_cov = self._scale_step(stamp_ns, wheel_used, camera_update,
                                                          {n: med.inliers[n].T_odom_base for n in used},
                                                          camera_stamps)
+        # road_speed: the road's metric step of the last frame pair as a forward speed, as a
+        # wheel's (one frame late: at 10 Hz a car's speed changes by 1-2 % in that time)
+        if self.params['road_speed'] and fixed_by == 'road' and self.scale.road_step is not None:
+            step, dt = self.scale.road_step
+            self.scale.road_step = None
+            if dt > 0 and abs(step[0]) > self.params['road_scale_min_step_m']:
+                v = step / dt
+                sd = self.params['road_speed_std'] * abs(v[0])
+                self.ekf.update_twist(np.r_[v, np.zeros(3)], np.eye(6) * sd * sd, axes=(0,),
+                                      gate_chi2=self.params['ekf_gate_chi2'])
         T_now = self.ekf.T
         scale_ratio = None
         scale_source = 'wheel' if wheel_used else ('landmarks' if self.has_tracked else 'none')
@@ -420,7 +434,8 @@ class GeneralFusion:
             if tr is None:
                 continue
             sigma = float(np.median(tr.sigma))
-            m = camera_motion(tr, float(cam.translation[2] - self.rig.floor_z), 2.0 * sigma,
+            up = self.scale.road_up()
+            m = camera_motion(tr, up, self.rig.floor_z, 2.0 * sigma,
                               p['road_twist_min_points'], p['road_twist_min_parallax_deg'],
                               p['road_scale_threshold'] * sigma, p['road_scale_min_step_m'])
             tracks.append(tr)

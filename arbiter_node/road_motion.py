@@ -30,18 +30,20 @@ class CameraMotion:
     inliers: np.ndarray        # (N,) bool: the tracks the essential matrix holds
 
 
-def camera_motion(tracks: CameraTracks, height_m: float, threshold: float, min_points: int,
-                  min_parallax_deg: float, road_threshold: float,
+def camera_motion(tracks: CameraTracks, up_body: Optional[np.ndarray], floor_z: Optional[float],
+                  threshold: float, min_points: int, min_parallax_deg: float, road_threshold: float,
                   min_step_m: float) -> Optional[CameraMotion]:
-    """Motion of one camera between frames a and b from its tracks in both; `height_m` its
-    height above the road (None: no road). None when the tracks do not fix it."""
+    """Motion of one camera between frames a and b from its tracks in both; the road through
+    the body's (0, 0, floor_z) with normal up_body (body frame; floor_z None: no road). None
+    when the tracks do not fix it."""
     tv = two_view(tracks.xa, tracks.xb, threshold, min_points, min_parallax_deg)
     if tv is None:
         return None
     direction = -tv.R.T @ tv.t
     length = None
-    if height_m is not None:
-        down_c = tracks.R_base_cam.T @ np.array([0.0, 0.0, -1.0])
+    if floor_z is not None:
+        down_c = tracks.R_base_cam.T @ -up_body
+        height_m = float(up_body @ (tracks.centre - np.array([0.0, 0.0, floor_z])))
         road = road_region(tracks.xa, down_c, tracks.R_base_cam, height_m) & tv.inliers
         fit = fit_road(tracks.xa[road], tracks.xb[road], down_c, height_m, road_threshold, min_step_m)
         if fit is not None:

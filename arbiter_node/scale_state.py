@@ -35,7 +35,8 @@ import numpy as np
 
 from arbiter_node.rig_motion_fit import CameraTracks, fit_rig_motion
 from arbiter_node.rig_scale import relative_motion, scale_correction, solve_rig_translation
-from camera_pose_nodes.road_plane import camera_step, fit_road
+from arbiter_node.road_pitch import TravelPitch
+from camera_pose_nodes.road_plane import camera_step, fit_road, road_scale
 from camera_pose_nodes.map_scale import MapScaleCommand, rescale_filter, scale_positions
 from multicam_ego_motion.geometry import se3
 
@@ -89,6 +90,8 @@ class ScaleState:
         self.last_fit = None                           # rig_motion_fit.RigMotionFit, diagnostics
         self.n_observations = 0                        # scale observations fused (diagnostics)
         self.n_road_fits = 0                           # of them from the road (diagnostics)
+        self.road_step = None                          # (metric body step, dt) of the last road observation
+        self.travel_pitch = TravelPitch() if rig.road_scale and params['road_pitch_from_travel'] else None
         if rig.road_scale:
             # the road's points are metric from the first frame, to about the camera's pitch
             self.P = float(params['road_scale_prior_std']) ** 2
@@ -138,6 +141,8 @@ class ScaleState:
             if T is not None:
                 centres[cam.name] = (T @ cam.T_base_cam)[:3, 3].copy()
         stamps = {n: int(s) for n, s in (camera_stamps or {}).items()}
+        if self.history and self.travel_pitch is not None and stamp_ns > self.history[-1][0]:
+            self.travel_pitch.add_step(np.linalg.solve(self.history[-1][1], T_now)[:3, 3])
         self.history.append((int(stamp_ns), T_now.copy(), centres, stamps))
         max_ns = p['scale_window_max_s'] * 1e9
         while len(self.history) > p['scale_pair_max_frames'] + 2 and stamp_ns - self.history[0][0] > max_ns:
@@ -252,11 +257,17 @@ class ScaleState:
             # read 2-3 % low (the prediction is smaller where |t| came out short).
             self._update(k, p['scale_pair_std'])
 
+    def road_up(self) -> np.ndarray:
+        """The road's normal (up) in the body frame: square to the direction of travel
+        (road_pitch) when road_pitch_from_travel, else the body's z."""
+        return self.travel_pitch.up_body() if self.travel_pitch is not None else np.array([0.0, 0.0, 1.0])
+
     def _observe_road(self):
-        """Over a road: each camera's step between the two previous frames from its tracks
-        below the horizon (road_plane.fit_road: the plane's homography, metric from the
-        camera's height, whatever its pitch to the road) against the fused step: one
-        observation of the scale per camera and frame pair."""
+        """Over a road: each camera's fused step between the two previous frames made metric
+        by its tracks in the lane ahead (road_plane.road_scale, on the road whose normal the
+        direction of travel gives; before that is known, the road homography's own step,
+        road_plane.fit_road): one observation of the scale per camera and frame pair, and
+        the body's metric step of the pair (the cameras' median) for road_speed."""
         p = self.p
         hist = list(self.history)
         if len(hist) < 3:
@@ -265,24 +276,41 @@ class ScaleState:
         if self.pair_end is not None and b[0] <= self.pair_end:
             return
         self.pair_end = b[0]
+        self.road_step = None
+        ks = []
+        up = self.road_up()
         for cam, tracks in zip(self.rig.cameras, self.tracks_between(a[3], b[3], a[0], b[0], by_camera=True)):
             if tracks is None:
                 continue
-            down_c = cam.rotation.T @ np.array([0.0, 0.0, -1.0])
-            height = float(cam.translation[2] - self.rig.floor_z)
+            down_c = cam.rotation.T @ -up
+            height = float(up @ (cam.translation - np.array([0.0, 0.0, self.rig.floor_z])))
             below = road_region(tracks.xa, down_c, cam.rotation, height)
+            T_a, T_b = a[1] @ cam.T_base_cam, b[1] @ cam.T_base_cam
+            if p['road_scale_known_step'] and (self.travel_pitch is None or self.travel_pitch.pitch_rad is not None):
+                T_ab = np.linalg.solve(T_b, T_a)                        # camera a -> camera b
+                if np.linalg.norm(T_ab[:3, 3]) < p['road_scale_min_step_m']:
+                    continue               # points above the road move as it does
+                rs = road_scale(tracks.xa[below], tracks.xb[below], T_ab[:3, :3], T_ab[:3, 3], down_c, height)
+                if rs is not None:
+                    ks.append(rs.factor)
+                    self.n_road_fits += 1
+                    self._update(rs.factor, p['road_scale_std'])
+                continue
             fit = fit_road(tracks.xa[below], tracks.xb[below], down_c, height,
                            p['road_scale_threshold'] * float(np.median(tracks.sigma)), p['road_scale_min_step_m'])
             if fit is None:
                 continue
-            T_a, T_b = a[1] @ cam.T_base_cam, b[1] @ cam.T_base_cam
             t_map = T_a[:3, :3].T @ (T_b[:3, 3] - T_a[:3, 3])            # in camera a
             t_metric = camera_step(fit)
             nn = float(t_map @ t_map)
             k = float(t_map @ t_metric) / nn if nn > 1e-12 else 0.0
             if k > 0 and np.isfinite(k):
+                ks.append(k)
                 self.n_road_fits += 1
                 self._update(k, p['road_scale_std'])
+        if ks:
+            # the body's metric step a -> b (body a's frame), its duration
+            self.road_step = (float(np.median(ks)) * np.linalg.solve(a[1], b[1])[:3, 3], (b[0] - a[0]) * 1e-9)
 
     def fit_summary(self) -> str:
         """The last rig-motion fit to the quarters' tracks, for /diagnostics: what it used,

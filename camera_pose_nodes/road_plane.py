@@ -14,6 +14,7 @@ makes its inliers road points. The quarter places them on the floor from the pre
 fused pose (ground_plane.floor_points), and its EKF measures this frame against them: a
 metric step from one pair of frames, whatever moved the fused poses before.
 """
+import math
 from dataclasses import dataclass
 from typing import Optional
 
@@ -67,3 +68,41 @@ def fit_road(xy0: np.ndarray, xy1: np.ndarray, down_c: np.ndarray, height_m: flo
 def camera_step(fit: RoadFit) -> np.ndarray:
     """Camera 1's centre in camera 0's frame (m)."""
     return -fit.R.T @ fit.step_m
+
+
+@dataclass
+class RoadScale:
+    factor: float              # k: the metric step is k times the given one
+    relative_std: float        # of k, from the points' scatter
+    n_points: int
+
+
+def road_scale(xy0: np.ndarray, xy1: np.ndarray, R: np.ndarray, t: np.ndarray, down_c: np.ndarray,
+               height_m: float, min_points: int = MIN_POINTS) -> Optional[RoadScale]:
+    """The factor k that makes a known motion's step metric, from road points: each track
+    triangulated with the motion (X1 = R X0 + t, camera 0 -> 1) gives a depth proportional to
+    |t|; its ray meets the road (normal down_c in camera 0, height_m below) at a metric depth;
+    k is the median of their ratios. Why not the homography (fit_road): with the rotation and
+    the direction of travel known, one unknown is left, where a homography fits eight to the
+    10-30 road tracks a frame at car speed has; its steps scattered 0.84-1.19 of the truth
+    (interquartile, KITTI 07), these 0.94-1.06. The road's normal must be the one the car
+    drives on (road_pitch): 1 deg of camera pitch moves k by 5-10 %.
+    None with fewer than min_points usable tracks."""
+    r0 = np.column_stack([xy0, np.ones(len(xy0))])
+    a = r0 @ R.T
+    # x1 (d a_z + t_z) = d a_xy + t_xy  ->  d (x1 a_z - a_xy) = t_xy - x1 t_z, per track
+    c = xy1 * a[:, 2:3] - a[:, :2]
+    e = t[None, :2] - xy1 * t[2]
+    cc = (c * c).sum(axis=1)
+    depth = (c * e).sum(axis=1) / np.maximum(cc, 1e-12)
+    toward_road = r0 @ down_c
+    ok = (depth > 0.0) & (toward_road > 1e-3) & (cc > 1e-12)
+    if ok.sum() < min_points:
+        return None
+    log_k = np.log(height_m / toward_road[ok]) - np.log(depth[ok])
+    med = float(np.median(log_k))
+    mad = 1.4826 * float(np.median(np.abs(log_k - med)))
+    k = math.exp(med)
+    if not np.isfinite(k):
+        return None
+    return RoadScale(k, 1.25 * mad / math.sqrt(ok.sum()), int(ok.sum()))

