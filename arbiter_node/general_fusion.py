@@ -430,11 +430,11 @@ class GeneralFusion:
         if dt <= 0.0:
             return 0
         tracks, motions = [], []
+        up = self.scale.road_up()
         for cam, tr in zip(self.rig.cameras, self.scale.tracks_between(c0, c1, s0, s1, by_camera=True)):
             if tr is None:
                 continue
             sigma = float(np.median(tr.sigma))
-            up = self.scale.road_up()
             m = camera_motion(tr, up, self.rig.floor_z, 2.0 * sigma,
                               p['road_twist_min_points'], p['road_twist_min_parallax_deg'],
                               p['road_scale_threshold'] * sigma, p['road_scale_min_step_m'])

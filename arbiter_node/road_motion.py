@@ -16,6 +16,7 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 
 from arbiter_node.rig_motion_fit import CameraTracks, fit_rig_motion
+from arbiter_node.road_pitch import camera_over_road
 from arbiter_node.scale_state import road_region
 from camera_pose_nodes.road_plane import camera_step, fit_road
 from camera_pose_nodes.two_view import two_view
@@ -42,8 +43,7 @@ def camera_motion(tracks: CameraTracks, up_body: Optional[np.ndarray], floor_z: 
     direction = -tv.R.T @ tv.t
     length = None
     if floor_z is not None:
-        down_c = tracks.R_base_cam.T @ -up_body
-        height_m = float(up_body @ (tracks.centre - np.array([0.0, 0.0, floor_z])))
+        down_c, height_m = camera_over_road(up_body, tracks.R_base_cam, tracks.centre, floor_z)
         road = road_region(tracks.xa, down_c, tracks.R_base_cam, height_m) & tv.inliers
         fit = fit_road(tracks.xa[road], tracks.xb[road], down_c, height_m, road_threshold, min_step_m)
         if fit is not None:

@@ -35,7 +35,7 @@ import numpy as np
 
 from arbiter_node.rig_motion_fit import CameraTracks, fit_rig_motion
 from arbiter_node.rig_scale import relative_motion, scale_correction, solve_rig_translation
-from arbiter_node.road_pitch import TravelPitch
+from arbiter_node.road_pitch import TravelPitch, camera_over_road
 from camera_pose_nodes.road_plane import camera_step, fit_road, road_scale
 from camera_pose_nodes.map_scale import MapScaleCommand, rescale_filter, scale_positions
 from multicam_ego_motion.geometry import se3
@@ -279,14 +279,16 @@ class ScaleState:
         self.road_step = None
         ks = []
         up = self.road_up()
+        # the known step's factor once the road's normal is known (the homography's before)
+        known_step = p['road_scale_known_step'] and (self.travel_pitch is None
+                                                     or self.travel_pitch.pitch_rad is not None)
         for cam, tracks in zip(self.rig.cameras, self.tracks_between(a[3], b[3], a[0], b[0], by_camera=True)):
             if tracks is None:
                 continue
-            down_c = cam.rotation.T @ -up
-            height = float(up @ (cam.translation - np.array([0.0, 0.0, self.rig.floor_z])))
+            down_c, height = camera_over_road(up, cam.rotation, cam.translation, self.rig.floor_z)
             below = road_region(tracks.xa, down_c, cam.rotation, height)
             T_a, T_b = a[1] @ cam.T_base_cam, b[1] @ cam.T_base_cam
-            if p['road_scale_known_step'] and (self.travel_pitch is None or self.travel_pitch.pitch_rad is not None):
+            if known_step:
                 T_ab = np.linalg.solve(T_b, T_a)                        # camera a -> camera b
                 if np.linalg.norm(T_ab[:3, 3]) < p['road_scale_min_step_m']:
                     continue               # points above the road move as it does

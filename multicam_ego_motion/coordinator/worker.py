@@ -84,6 +84,14 @@ def exit_within(grace_s: float, code: int):
 stopped_by_signal = threading.Event()
 
 
+def stop_on_signal(code: int):
+    """From a signal handler: the nodes are left to the process's end, which comes within
+    EXIT_GRACE_S with `code` (exit_within), and the main thread unwinds now."""
+    stopped_by_signal.set()
+    exit_within(EXIT_GRACE_S, code)
+    raise SystemExit(0)
+
+
 def _die_with_parent():
     try:
         ctypes.CDLL('libc.so.6', use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
@@ -523,9 +531,7 @@ def run_remote(args) -> int:
 
     def on_signal(signum, frame):
         signals.append(signum)
-        stopped_by_signal.set()
-        exit_within(EXIT_GRACE_S, 128 + signum)
-        raise SystemExit(0)
+        stop_on_signal(128 + signum)
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, on_signal)
     rclpy.init(args=['worker', *config['ros_args']],
@@ -566,12 +572,6 @@ def main_remote(argv=None):
         return 2
 
 
-def _stop_on_sigterm(signum, frame):
-    stopped_by_signal.set()
-    exit_within(EXIT_GRACE_S, 0)
-    raise SystemExit(0)
-
-
 def main(argv=None):
     for sig in (signal.SIGINT, signal.SIGHUP):   # the coordinator stops us (module docstring)
         signal.signal(sig, signal.SIG_IGN)
@@ -598,7 +598,7 @@ def main(argv=None):
     for kind in ('quarter', 'camera_arbiter', 'general_arbiter'):
         node_class(kind)
     conn = control.connect(args.control)
-    signal.signal(signal.SIGTERM, _stop_on_sigterm)
+    signal.signal(signal.SIGTERM, lambda signum, frame: stop_on_signal(0))
     # rclpy's SIGTERM handler wakes the executor's blocking wait (shuts the context down).
     rclpy.init(signal_handler_options=rclpy.signals.SignalHandlerOptions.SIGTERM)
     # EGO_MOTION_PROFILE_DIR=DIR: each worker writes cProfile stats to
