@@ -59,6 +59,12 @@ from multicam_ego_motion.errors import UserError
 
 START_TIMEOUT_S = 60.0
 REPLY_TIMEOUT_S = 30.0
+# Lockstep moves: how long a node may take to finish its frame; a node still mid-frame stays
+# and its move is tried again at the next between-frames moment (at most POSTPONED_TRIES).
+# With free-running cameras a node's frame can wait for the image or wheel reading the player
+# holds back until the move is done: the next moment, after another frame, may find it idle.
+LOCKSTEP_IDLE_WAIT_S = 0.1
+POSTPONED_TRIES = 50
 REMOTE_JOIN_TIMEOUT_S = 120.0
 WORKER_MODULE = 'multicam_ego_motion.coordinator.worker'
 
@@ -164,6 +170,9 @@ class Coordinator:
         self._stopping = False
         self._quiet = False          # quiesce(): a signal came, stop() follows
         self._last_rebalance_frame = -10 ** 9
+        self._last_forced_frame = 0
+        self._postponed: List[tuple] = []          # lockstep moves whose node was mid-frame
+        self._postponed_tries = 0
         # Per closed frame, against the placement of the time: was a move worth it? Kept as
         # frames close (the executor thread) so that the lockstep between-frames hook only
         # looks at flags (the full decision costs ~3 ms of Python per frame).
@@ -552,15 +561,18 @@ class Coordinator:
                 self._spawn(self._spare)
 
     # ---- migration and rebalancing ---------------------------------------------------------
-    def migrate(self, key: str, dst: int):
+    def migrate(self, key: str, dst: int, between_frames: bool = False) -> bool:
         """Move a node to worker `dst` with its state; no frame is skipped when called
         between frames (lockstep). `link_waiter(spec, phase, readers)` (phase 'detached',
         'attached'; readers: the image subscriptions of the node's camera after that phase),
-        when set, waits until the frame source sees the change."""
+        when set, waits until the frame source sees the change. between_frames (lockstep): a
+        node that has not finished its frame within LOCKSTEP_IDLE_WAIT_S stays (False): with
+        free-running cameras its frame can wait for one the player holds back until this
+        returns. Otherwise (rate mode) it is taken as it is after DETACH_IDLE_TIMEOUT_S."""
         with self._ops:
             src = self.placement[key]
             if src == dst:
-                return
+                return True
             spec = self.specs[key].to_dict()
             camera = spec['parameters'].get('camera')
             without = {k: w for k, w in self.placement.items() if k != key}
@@ -569,12 +581,15 @@ class Coordinator:
                        self.image_readers(camera, dict(without, **{key: dst})))
             t = [time.monotonic()]
             try:
-                reply = self._request(self.workers[src], control.DETACH, key)
+                reply = self._request(self.workers[src], control.DETACH, key,
+                                      LOCKSTEP_IDLE_WAIT_S if between_frames else None)
             except WorkerDied as e:
                 # The node stays placed on src: the crash watcher (waiting for this lock)
                 # restores it there with src's other nodes, from its last snapshot.
                 self.say(f'move of {key} abandoned: {e}; its worker is being restored')
-                return
+                return True
+            if reply.get('busy'):
+                return False
             t.append(time.monotonic())
             if self.link_waiter:
                 self.link_waiter(spec, 'detached', readers[0])
@@ -589,7 +604,7 @@ class Coordinator:
                 self.placement[key] = dst
                 self._placement_version += 1
                 self.say(f'move of {key} to worker {dst} cut short: {e}; it is restored there')
-                return
+                return True
             t.append(time.monotonic())
             if self.link_waiter:
                 self.link_waiter(spec, 'attached', readers[1])
@@ -598,7 +613,9 @@ class Coordinator:
             self._placement_version += 1
             self.stats.migrations += 1
             self.say(f'moved {key}: worker {src} -> {dst} in {1e3 * (t[-1] - t[0]):.0f} ms (detach, unlink, '
-                     'attach, link: ' + ', '.join(f'{1e3 * (b - a):.0f}' for a, b in zip(t, t[1:])) + ' ms)')
+                     'attach, link: ' + ', '.join(f'{1e3 * (b - a):.0f}' for a, b in zip(t, t[1:])) + ' ms)'
+                     + ('' if reply.get('idle', True) else '; taken mid-frame: not between frames in time'))
+            return True
 
     def current_allocation(self) -> Allocation:
         workers = {w: [k for k, v in self.placement.items() if v == w] for w in range(self.n_workers)}
@@ -616,15 +633,37 @@ class Coordinator:
     def between_frames(self, frame_index: int):
         """Called by the frame source between two frames (lockstep): the safe moment to move
         nodes. Forced migrations (a debug/test option) move one quarter every K frames."""
-        if self.migrate_every and frame_index > 0 and frame_index % self.migrate_every == 0:
+        if self._postponed:
+            self._postponed_tries += 1
+            if self._postponed_tries > POSTPONED_TRIES:
+                self.say(f'{len(self._postponed)} move(s) dropped: the node was mid-frame at '
+                         f'{POSTPONED_TRIES} between-frames moments in a row: '
+                         + ', '.join(f'{k} -> worker {w}' for k, w in self._postponed))
+                self._postponed = []
+            else:
+                self._postponed = self._run_moves(self._postponed)
+            return
+        if self.migrate_every and frame_index - self._last_forced_frame >= self.migrate_every:
+            self._last_forced_frame = frame_index
             quarters = [k for k in self.specs if self.specs[k].kind == 'quarter']
             key = quarters[self._forced % len(quarters)]
             self._forced += 1
-            self.migrate(key, (self.placement[key] + 1) % self.n_workers)
-        self.maybe_rebalance()
+            self._postpone(self._run_moves([(key, (self.placement[key] + 1) % self.n_workers)]))
+            return
+        self.maybe_rebalance(between_frames=True)
 
-    def maybe_rebalance(self):
-        if not self.rebalance_enabled or not self.costs.measured:
+    def _run_moves(self, moves, between_frames: bool = True) -> list:
+        """The moves in order; from the first whose node is mid-frame on, those left."""
+        for i, (key, w) in enumerate(moves):
+            if not self.migrate(key, w, between_frames):
+                return moves[i:]
+        return []
+
+    def _postpone(self, moves):
+        self._postponed, self._postponed_tries = moves, 0
+
+    def maybe_rebalance(self, between_frames: bool = False):
+        if not self.rebalance_enabled or not self.costs.measured or self._postponed:
             return
         frame = self.costs.frames
         if frame - self._last_rebalance_frame < 2 * self.hysteresis_frames:
@@ -649,8 +688,7 @@ class Coordinator:
                  f'{loads(d.proposal)} ms, imbalance {current.imbalance:.2f} -> '
                  f'{d.proposal.imbalance:.2f}; {len(moves)} move(s): '
                  + ', '.join(f'{k} -> worker {w}' for k, w in moves))
-        for key, w in moves:
-            self.migrate(key, w)
+        self._postpone(self._run_moves(moves, between_frames))
         self.allocation = d.proposal
 
     # ---- ROS side: the coordinator's own diagnostics -------------------------------------

@@ -348,9 +348,10 @@ class Worker:
         now = time.monotonic()
         for item in list(self.deferred):
             predicate, action, deadline = item
-            if predicate() or now > deadline:
+            ok = predicate()
+            if ok or now > deadline:
                 self.deferred.remove(item)
-                action(now <= deadline)
+                action(ok)
         if not self.deferred:
             self.ticker.cancel()
 
@@ -426,13 +427,19 @@ class Worker:
         self.defer(lambda: all(linked(n, self.shared_subscriptions(n), graph_only=True) for n in nodes),
                    done, START_LINK_TIMEOUT_S)
 
-    def detach(self, req, key):
+    def detach(self, req, key, idle_wait_s=None):
+        """Detach a node once it is between frames, and reply with its state. idle_wait_s:
+        a node still mid-frame after that long stays (the reply says busy); None: it is taken
+        as it is after DETACH_IDLE_TIMEOUT_S."""
         node = self.hosted.get(key)
         if node is None:
             self.send((control.REPLY, req, {'ok': False, 'error': f'{key} is not hosted here'}))
             return
 
         def done(idle):
+            if not idle and idle_wait_s is not None:
+                self.send((control.REPLY, req, {'ok': True, 'busy': True}))
+                return
             self.flush_diagnostics()
             state = node.get_state() if hasattr(node, 'get_state') else None
             self.unfeed(key)
@@ -446,7 +453,8 @@ class Worker:
             self.send((control.REPLY, req, {'ok': True, 'idle': idle,
                                             'state': pickle.dumps(state, protocol=pickle.HIGHEST_PROTOCOL)}))
         # Between frames only: the state must include the last frame's fused pose.
-        self.defer(getattr(node, 'idle', lambda: True), done, DETACH_IDLE_TIMEOUT_S)
+        self.defer(getattr(node, 'idle', lambda: True), done,
+                   DETACH_IDLE_TIMEOUT_S if idle_wait_s is None else idle_wait_s)
 
     def _spin(self):
         """The executor's loop, plus idle work: one item whenever a look at the wait set
