@@ -15,7 +15,10 @@ stamps only grow: with two frames in flight, a 15 Hz camera's next frame can com
 frames and no other. Until a source has two stamps its period is unknown: it is waited for,
 and a first miss does not mark it absent (it may be a slower camera, not a dead one).
 
-Groups are released in stamp order and a stamp not after the last release is dropped.
+Groups are released in stamp order and a stamp not after the last release is dropped. A
+group's `missing` names the sources that were due in it and did not report; not one whose next
+frame came after the group where its period put it (a free-running camera due within the
+jitter allowance that captured a few ms later: it was never going to be in this group).
 """
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional
@@ -134,6 +137,17 @@ class StampSynchronizer:
         source's stamps only grow), e.g. while lockstep has two frames in flight."""
         return source not in g.items and self.last_stamp.get(source, -1) > g.lo + self.window_ns
 
+    def _next_came_after(self, source: str, g: _Open) -> bool:
+        """The source's first stamp after the group is the one its period puts there (within
+        the jitter allowance), i.e. its frame was not due inside the group after all."""
+        period = self.period_ns.get(source)
+        stamps = self.recent.get(source, ())
+        prev = max((t for t in stamps if t < g.lo), default=None)
+        nxt = min((t for t in stamps if t > g.hi + self.window_ns), default=None)
+        if period is None or prev is None or nxt is None:
+            return False
+        return nxt <= prev + period + DUE_JITTER_SHARE * period
+
     def _waits_for(self, source: str, g: _Open) -> bool:
         return source not in self.absent and self.due(source, g) and not self.past(source, g)
 
@@ -150,7 +164,8 @@ class StampSynchronizer:
             waited = now - g.first_seen >= self.timeout_s
             if not (complete or waited or any(self._complete(h) for h in self._open[1:])):
                 break
-            missing = [s for s in self.sources if s not in g.items and self.due(s, g)]
+            missing = [s for s in self.sources
+                       if s not in g.items and self.due(s, g) and not self._next_came_after(s, g)]
             for s in missing:
                 if self.past(s, g):
                     continue               # alive: it skipped this frame

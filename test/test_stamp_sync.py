@@ -134,3 +134,31 @@ def test_group_a_source_has_moved_past_is_not_waited_for():
     assert [x.stamp_ns for x in g] == [p] and not g[0].timed_out and 'b' not in s.absent
     g = s.add('a', 2 * p, 'a2', now=0.3)
     assert g[0].items == {'a': 'a2', 'b': 'b2'} and not g[0].timed_out
+
+
+def test_a_camera_capturing_just_after_a_group_is_not_named_missing():
+    # 15 Hz (66.7 ms): b captures 7 ms after a, within the eighth of its period in which it is
+    # due in a's group; its image belongs to its own stamp, so a's group does not miss it.
+    P, d = 66_700_000, 7_000_000
+    s = StampSynchronizer(['a', 'b'], timeout_s=1.0)
+    out = []
+    for k in range(4):
+        out += s.add('a', k * P, 'A', now=0.1 * k)
+        out += s.add('b', k * P + d, 'B', now=0.1 * k + 0.01)
+    assert [g.stamp_ns for g in out] == [t for k in range(4) for t in (k * P, k * P + d)]
+    # (until b has two stamps its period is unknown: the first group still names it)
+    assert not any(g.timed_out for g in out)
+    assert [g.missing for g in out[2:]] == [[]] * 6, [(g.stamp_ns, g.missing) for g in out]
+
+
+def test_a_dropped_frame_of_a_synchronised_camera_is_named_missing():
+    P = 100
+    s = StampSynchronizer(['a', 'b'], timeout_s=1.0)
+    out = []
+    for k in range(3):
+        out += s.add('a', k * P, 'A', now=0.1 * k)
+        out += s.add('b', k * P, 'B', now=0.1 * k)
+    out += s.add('a', 3 * P, 'A', now=0.3)              # b drops frame 3
+    out += s.add('b', 4 * P, 'B', now=0.4)
+    out += s.add('a', 4 * P, 'A', now=0.4)
+    assert [(g.stamp_ns, g.missing) for g in out] == [(0, []), (P, []), (2 * P, []), (3 * P, ['b']), (4 * P, [])]
