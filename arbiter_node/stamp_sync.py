@@ -127,10 +127,14 @@ class StampSynchronizer:
         if source in g.items:
             return True
         period = self.period_ns.get(source)
-        prev = max((t for t in self.recent.get(source, ()) if t < g.lo), default=None)
+        prev = self._before(source, g)
         if period is None or prev is None:
             return True
         return prev + period - DUE_JITTER_SHARE * period <= g.lo + self.window_ns
+
+    def _before(self, source: str, g: _Open) -> Optional[int]:
+        """The source's last recent stamp before the group."""
+        return max((t for t in self.recent.get(source, ()) if t < g.lo), default=None)
 
     def past(self, source: str, g: _Open) -> bool:
         """The source reported a later frame already: it has nothing more for this group (a
@@ -141,9 +145,8 @@ class StampSynchronizer:
         """The source's first stamp after the group is the one its period puts there (within
         the jitter allowance), i.e. its frame was not due inside the group after all."""
         period = self.period_ns.get(source)
-        stamps = self.recent.get(source, ())
-        prev = max((t for t in stamps if t < g.lo), default=None)
-        nxt = min((t for t in stamps if t > g.hi + self.window_ns), default=None)
+        prev = self._before(source, g)
+        nxt = min((t for t in self.recent.get(source, ()) if t > g.hi + self.window_ns), default=None)
         if period is None or prev is None or nxt is None:
             return False
         return nxt <= prev + period + DUE_JITTER_SHARE * period

@@ -641,7 +641,11 @@ class Coordinator:
                          + ', '.join(f'{k} -> worker {w}' for k, w in self._postponed))
                 self._postponed = []
             else:
-                self._postponed = self._run_moves(self._postponed)
+                left = self._run_moves(self._postponed)
+                if len(left) < len(self._postponed):
+                    self._postpone(left)     # a move went: the count is of tries in a row
+                else:
+                    self._postponed = left
             return
         if self.migrate_every and frame_index - self._last_forced_frame >= self.migrate_every:
             self._last_forced_frame = frame_index
