@@ -43,7 +43,7 @@ from multicam_ego_motion.ros_plumbing.node_parameters import declare_from_table
 from multicam_ego_motion.ros_plumbing.pose_messages import estimate_to_msg, msg_to_estimate, stamp_to_ns
 from multicam_ego_motion.ros_plumbing.qos import LATCHED, RELIABLE, RELIABLE_IMAGES, image_qos
 from multicam_ego_motion.ros_plumbing.recent_outputs import RecentOutputs
-from multicam_ego_motion.geometry.rig import load_rig
+from multicam_ego_motion.geometry.rig import load_rig, with_transport
 
 # Timeouts only: the normal path is driven by messages. Every timer wake-up makes rclpy's
 # executor rebuild its wait set over all of the worker's entities, so poll slowly.
@@ -56,6 +56,7 @@ NODE_PARAMETERS = {
     'quarter': (1, 'image quarter: 1 top-left, 2 top-right, 3 bottom-left, 4 bottom-right', 1, 4),
     'rig_file': ('', 'rig YAML (camera names, topics, extrinsics base_link -> optical)', None, None),
     'image_qos': ('sensor_data', 'image subscription QoS: sensor_data or reliable (lockstep replay)', None, None),
+    'image_transport': ('', 'image_transport of this camera\'s images (and its stereo partner\'s): raw (sensor_msgs/Image on the image topic) or compressed (sensor_msgs/CompressedImage, JPEG or PNG, on <image topic>/compressed); empty: the rig file\'s transport for each camera', None, None),
     'fused_pose_topic': ('/ego_motion/fused_pose', 'general arbiter feedback topic', None, None),
     'feedback_timeout_s': (0.5, 'longest wait for the previous frame\'s fused pose', 0.0, 60.0),
     'frame_schedule_topic': ('/ego_motion/frame_schedule', 'which frames to process when the graph is behind the cameras (general arbiter)', None, None),
@@ -89,7 +90,8 @@ class QuarterNode(Node):
         self.params = QuarterParams(**declare_from_table(self, PARAMETERS))
         if not p['rig_file']:
             raise UserError(f'{self.get_fully_qualified_name()}: parameter rig_file is required')
-        rig = load_rig(p['rig_file'])
+        rig = with_transport(load_rig(p['rig_file']), p['image_transport'],
+                             f'{self.get_fully_qualified_name()}: parameter image_transport')
         self.camera = rig.camera(p['camera'])
         partners = rig.stereo_partners(self.camera.name) if self.params.stereo else []
         # the first partner: a quarter matches into one other image

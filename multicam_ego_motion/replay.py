@@ -167,8 +167,10 @@ def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False,
         general['odom_rate_hz'] = 0.0     # the player waits for each fused stamp's /odom
     if sync_window_s is not None:     # (left out when not given: the params file's value stands)
         general['sync_window_s'] = float(sync_window_s)
+    # (image_transport: the rig replay hands the nodes has each camera's transport as the
+    # bag holds it, which a params file's image_transport must not override)
     overrides = {'quarter': {'image_qos': 'reliable' if lockstep else 'sensor_data',
-                             'feedback_timeout_s': wait},
+                             'feedback_timeout_s': wait, 'image_transport': ''},
                  'camera_arbiter': {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2},
                  'general_arbiter': general}
     if debug_images:          # (left out when off: the params file's value stands)

@@ -176,3 +176,67 @@ def test_four_quarters_of_a_worker_decode_each_compressed_image_once(rclpy_conte
         for node in nodes:
             node.estimator.close()
             node.destroy_node()
+
+
+def test_image_transport_parameter_wins_over_the_rig_file(rclpy_context):
+    """A rig file that says nothing of transports (raw) and a robot that publishes only
+    image_transport's compressed stream: the quarter's `image_transport: compressed` makes
+    it subscribe `<image topic>/compressed`, and a JPEG published there over DDS comes out as
+    its pose estimate. Empty keeps the rig's transport; any other value is refused, naming
+    the parameter and the choices."""
+    import time
+
+    import cv2
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import CompressedImage
+
+    from camera_pose_nodes.image_conversion import image_msg_to_gray
+    from camera_pose_nodes.quarter_node import QuarterNode
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from multicam_ego_motion.errors import UserError
+    from multicam_ego_motion.ros_plumbing.qos import RELIABLE
+
+    def quarter(transport, **kw):
+        return QuarterNode(parameter_overrides=[
+            Parameter('camera', value='front'), Parameter('quarter', value=3),
+            Parameter('rig_file', value=str(REPO / 'bags' / 'default' / 'rig.yaml')),
+            Parameter('image_transport', value=transport)], **kw)
+
+    raw = quarter('')
+    assert '/front/image_raw' in raw.inputs and '/front/image_raw/compressed' not in raw.inputs
+    raw.destroy_node()
+    with pytest.raises(UserError, match=r"image_transport must be one of raw, compressed.*'theora'"):
+        quarter('theora')
+
+    info, images = _front_frames(1)
+    ok, enc = cv2.imencode('.jpg', image_msg_to_gray(images[0]), [cv2.IMWRITE_JPEG_QUALITY, 90])
+    jpeg = CompressedImage(header=images[0].header, format='mono8; jpeg compressed mono8',
+                           data=enc.tobytes())
+    node = quarter('compressed', namespace='/front/q3')
+    assert '/front/image_raw/compressed' in node.inputs and '/front/image_raw' not in node.inputs
+    from rclpy.node import Node
+    robot = Node('robot_camera')
+    pub_info = robot.create_publisher(type(info), '/front/camera_info', RELIABLE)
+    pub_jpeg = robot.create_publisher(CompressedImage, '/front/image_raw/compressed', RELIABLE)
+    poses = []
+    robot.create_subscription(PoseWithCovarianceStamped, '/front/q3/pose',
+                              lambda m: poses.append(stamp_to_ns(m.header.stamp)), RELIABLE)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    executor.add_node(robot)
+    try:
+        deadline = time.monotonic() + 20.0
+        while not poses and time.monotonic() < deadline:
+            if node.intrinsics is None:
+                pub_info.publish(info)
+            else:
+                pub_jpeg.publish(jpeg)
+            executor.spin_once(timeout_sec=0.1)
+        assert poses and poses[0] == stamp_to_ns(images[0].header.stamp)
+    finally:
+        executor.shutdown()
+        if node.estimator is not None:
+            node.estimator.close()
+        node.destroy_node()
+        robot.destroy_node()

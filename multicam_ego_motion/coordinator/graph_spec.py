@@ -9,11 +9,11 @@ topic they use, inputs and outputs (/robot1/front/image_raw, /robot1/odom, /robo
 absolutely, which a node namespace leaves alone: `remappings()` gives the rules (rcl's
 `-r FROM:=TO`) that move those.
 """
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Dict, Iterable, List, Tuple
 
 from multicam_ego_motion.coordinator.allocation import QUARTERS
-from multicam_ego_motion.geometry.rig import Rig
+from multicam_ego_motion.geometry.rig import TRANSPORTS, Rig
 
 
 @dataclass
@@ -93,7 +93,9 @@ def graph_topics(rig: Rig, topic_parameters: Iterable[str] = ()) -> List[str]:
     """Every absolute topic name the graph's nodes use (what a namespace must move)."""
     names = list(FIXED_TOPICS)
     for cam in rig.cameras:
-        names += [cam.image_topic, cam.input_topic, cam.camera_info_topic, f'/{cam.name}/pose']
+        # every transport's topic: a quarter's image_transport parameter can override the rig's
+        names += [replace(cam, transport=t).input_topic for t in TRANSPORTS]
+        names += [cam.image_topic, cam.camera_info_topic, f'/{cam.name}/pose']
         names += [bearings_topic(cam.name, q) for q in range(1, QUARTERS + 1)]
     names += list(topic_parameters)
     return sorted({n for n in names if n.startswith('/')})

@@ -4,7 +4,7 @@ Loaded from a YAML rig file in config/ and validated, so that a bad rig is rejec
 with a message naming the camera and the problem (NaN, non-orthonormal rotation, ...).
 Intrinsics are not here: they come from each camera's CameraInfo.
 """
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import List, Optional, Tuple
 
@@ -245,6 +245,17 @@ def parse_stereo_pairs(value, names, source: str = 'rig') -> Tuple[Tuple[str, st
         seen.add(frozenset(p))
         pairs.append((a, b))
     return tuple(pairs)
+
+
+def with_transport(rig: Rig, transport: str, what: str = 'transport') -> Rig:
+    """The rig with every camera's images on `transport` (a node's image_transport
+    parameter, which wins over the rig file); '' leaves each camera's as the file says."""
+    if not transport:
+        return rig
+    if transport not in TRANSPORTS:
+        raise UserError(f'{what} must be one of {", ".join(TRANSPORTS)} (or empty: the rig '
+                        f'file\'s), got {transport!r}')
+    return replace(rig, cameras=[replace(c, transport=transport) for c in rig.cameras])
 
 
 def load_rig(path) -> Rig:
