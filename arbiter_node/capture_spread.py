@@ -24,6 +24,9 @@ class CaptureSpread:
     period_ns: int          # shortest frame period of any camera (0: unknown)
     window_s: float         # grouping window to use: 0 for identical stamps
     groupable: bool         # a window below half the shortest period exists
+    # frames a lockstep player must have out at once while the cameras' periods are still
+    # unknown (start_depth)
+    start_frames: int = 1
 
     def describe(self) -> str:
         return (f'cameras capture up to {self.spread_ns / 1e6:.1f} ms apart '
@@ -47,8 +50,9 @@ def capture_spread(stamps: Dict[str, Sequence[int]]) -> CaptureSpread:
     periods = [min(b - a for a, b in zip(s, s[1:]) if b > a)
                for s in (sorted(set(v)) for v in stamps.values()) if len(s) > 1]
     period = min(periods) if periods else 0
+    start = start_depth(stamps)
     if period <= 0 or len(stamps) < 2:
-        return CaptureSpread(0, period, 0.0, True)
+        return CaptureSpread(0, period, 0.0, True, start)
     events = sorted((t, topic) for topic, ts in stamps.items() for t in ts)
     spread, first, seen = 0, None, set()
     for t, topic in events:
@@ -57,9 +61,33 @@ def capture_spread(stamps: Dict[str, Sequence[int]]) -> CaptureSpread:
         seen.add(topic)
         spread = max(spread, t - first)
     if spread == 0:
-        return CaptureSpread(0, period, 0.0, True)
+        return CaptureSpread(0, period, 0.0, True, start)
     window_ns = math.ceil((spread * MARGIN + JITTER_NS) / 1e6) * 1_000_000   # whole ms
-    return CaptureSpread(spread, period, window_ns / 1e9, 2 * window_ns < period)
+    return CaptureSpread(spread, period, window_ns / 1e9, 2 * window_ns < period, start)
+
+
+def start_depth(stamps: Dict[str, Sequence[int]]) -> int:
+    """Capture instants a lockstep player must have out at once at the start: until a
+    camera's second image its period is unknown, so the general arbiter waits for it in every
+    group, until an image of it after the group comes (stamp_sync). For each group before a
+    camera's second image, the instants from the group to that camera's next image. Cameras
+    at 30 and 10 Hz with common instants: 0, 33, 67, 100 ms, the 33 ms group waits for the 10
+    Hz camera's 100 ms image: 3 (1 for identical rates and stamps)."""
+    instants = sorted({t for v in stamps.values() for t in v})
+    index = {t: i for i, t in enumerate(instants)}
+    need = 1
+    for ts in stamps.values():
+        own = set(ts)
+        ts = sorted(own)
+        for t_next in ts[1:2]:              # (cameras with a second image in the sample)
+            for i, g in enumerate(instants):
+                if g >= t_next:
+                    break
+                if g in own:
+                    continue                # its own image is in that group
+                nxt = next(t for t in ts if t > g)
+                need = max(need, index[nxt] - i + 1)
+    return need
 
 
 class WindowLearner:

@@ -184,14 +184,22 @@ def free_running_depth(reader, rig) -> int:
     coincide; with free-running cameras (each image a frame of its own, fused at its own
     stamp) one more than the cameras, so that the images the general arbiter must see before
     it fuses an estimate (the other cameras' next ones, the wheel's next tick) are out before
-    the player waits for that estimate's /odom. Says so in one line."""
+    the player waits for that estimate's /odom. Cameras at different rates need more at the
+    start, while the arbiter waits for a camera until its second image (its period) comes:
+    every instant up to that image (capture_spread.start_depth). Says so in one line."""
     from multicam_ego_motion.bag.capture_spread import bag_capture_spread
     spread = bag_capture_spread(reader, [c.input_topic for c in rig.cameras])
-    if spread.spread_ns == 0:
-        return LOCKSTEP_DEPTH
-    print(f'replay: {spread.describe()}: free-running, each camera fused at its own stamp',
-          flush=True)
-    return max(LOCKSTEP_DEPTH, len(rig.cameras) + 1)
+    depth = LOCKSTEP_DEPTH
+    if spread.spread_ns:
+        print(f'replay: {spread.describe()}: free-running, each camera fused at its own stamp',
+              flush=True)
+        depth = max(depth, len(rig.cameras) + 1)
+    if spread.start_frames > depth:
+        print(f'replay: cameras at different rates or phases: {spread.start_frames} frames in flight, '
+              'so that each camera\'s second image is out while the fusion waits to learn its period',
+              flush=True)
+        depth = spread.start_frames
+    return depth
 
 
 def recorded_topics(rig, debug_images: bool = False):

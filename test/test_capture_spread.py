@@ -65,3 +65,18 @@ def test_a_learner_answers_once_when_a_camera_has_enough_frames():
     synced = WindowLearner(frames=3)
     out = [synced.add(t, ts[k]) for k in range(3) for t, ts in rig([0, 0]).items()]
     assert [a.window_s for a in out if a is not None] == [0.0]
+
+
+def test_frames_a_lockstep_player_keeps_out_until_every_period_is_known():
+    """Until a camera's second image the general arbiter waits for it in every group; the
+    player must have that image out by then (start_frames: instants from a group to the
+    waited-for camera's next image)."""
+    assert capture_spread(rig([0, 0, 0, 0])).start_frames == 1
+    # 30/20/15/10 Hz with common instants: the 33 ms group waits for the 10 Hz camera's
+    # 100 ms image, 4 instants on (33, 50, 67, 100)
+    rates = {f'/c{hz}/image_raw': [round(k * 1e9 / hz) for k in range(hz * 2)] for hz in (30, 20, 15, 10)}
+    s = capture_spread(rates)
+    assert s.spread_ns == 0 and s.start_frames == 4
+    # four phases over the period: the 8 ms group waits for the 0 ms camera's second image
+    # (8, 16, 24, 66.7: 4), no more than the cameras
+    assert capture_spread(rig([0, 8, 16, 24])).start_frames == 4

@@ -168,9 +168,12 @@ def test_lockstep_equals_the_sequential_pipeline_with_random_phases(runs, bags):
 
 
 def test_four_rates_at_once_lockstep(runs, bags):
-    # (a frame or two of the first 0.1 s may wait for the 2 s stall: until a camera's second
-    # image its period is unknown and it is waited for; the odometry is the same)
-    used = every_image_fused_alone(runs['mixed'], bags['mixed'], stalls=False)
+    # Until a camera's second image its period is unknown and every group waits for it: the
+    # replay keeps enough frames in flight for that image to be out (no 2 s stall; there was
+    # one at the start). Images not used: the first frame's (initializing) and the 10 Hz
+    # camera's where the fusion leaves it out (its tracking in the turns)
+    assert 'cameras at different rates or phases: 4 frames in flight' in runs['mixed'].stdout
+    used = every_image_fused_alone(runs['mixed'], bags['mixed'])
     images = sum(len(v) for v in camera_stamps(bags['mixed']).values())
     assert used >= 0.94 * images
     sync, mixed = scored(runs['sync']), scored(runs['mixed'])
