@@ -1,7 +1,8 @@
 """`ego-motion ablation BAG`: does fusion help? The same estimator (the sequential pipeline,
 which reproduces the graph's odometry) on the whole rig, on each camera alone and on each
-single quarter alone, every one scored against the bag's ground truth. Prints one table
-(markdown) and writes it to OUT/ablation.md.
+single quarter alone, every one scored against the bag's ground truth, with its CPU per
+frame (the estimation's process CPU, OpenCV on one thread, not reading the bag). Prints one
+table (markdown) and writes it to OUT/ablation.md.
 
 The single-camera and single-quarter runs keep the rest of the estimator (general arbiter,
 wheel prior when the bag has one): they answer "what if this were the only camera / quarter".
@@ -13,7 +14,8 @@ from multicam_ego_motion.errors import UserError
 
 COLUMNS = (('ate_pct', 'ATE % path', '{:.2f}'), ('final_drift_pct', 'final drift %', '{:.2f}'),
            ('rotation_drift_deg_per_m', 'rot drift deg/m', '{:.3f}'),
-           ('scale_error_pct', 'scale err %', '{:+.2f}'))
+           ('scale_error_pct', 'scale err %', '{:+.2f}'),
+           ('cpu_ms_per_frame', 'CPU ms/frame', '{:.1f}'))
 
 
 def configure_parser(p):
@@ -44,6 +46,8 @@ def summary_lines(label, rows):
 
 
 def run(args) -> int:
+    import cv2
+    import numpy as np
     from tqdm import tqdm
 
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
@@ -65,9 +69,11 @@ def run(args) -> int:
     if not args.no_quarters:
         runs += [(f'{c.name}/q{q}', replace(rig, cameras=[c]), (q,)) for c in present for q in range(1, 5)]
     results = {}
+    cv2.setNumThreads(1)        # the CPU per frame as one worker spends it
     for label, sub_rig, quarters in tqdm(runs, desc='ablation', unit='run'):
         res = run_sequential(args.bag, sub_rig, qp, fp, quarters=quarters)
         results[label] = score(args.bag, res.fused, args.ground_truth_topic)
+        results[label]['cpu_ms_per_frame'] = float(np.mean(res.frame_cpu_ms))
     head = '| configuration | ' + ' | '.join(t for _, t, _ in COLUMNS) + ' |'
     lines = [f'Ablation on {args.bag} ({len(present)} cameras):', '', head,
              '|---|' + '---:|' * len(COLUMNS), row('fused (whole rig)', results['fused (whole rig)'])]
