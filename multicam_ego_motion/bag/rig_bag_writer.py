@@ -8,6 +8,9 @@
   /tf_static          tf2_msgs/TFMessage: base_link -> each <cam>_optical, once at the start
   /ground_truth/odom  nav_msgs/Odometry odom -> base_link, pose in odom, twist in base_link
   /wheel/odom         nav_msgs/Odometry (optional), same frames
+  /imu/data           sensor_msgs/Imu (optional, generated bags with an IMU rate): angular
+                      velocity and specific force in imu_link, no orientation (covariance -1);
+                      base_link -> imu_link in /tf_static
 
 All images of a frame carry the same header stamp (free-running cameras: each image its own
 capture instant, the frame being whichever images were written together); the log time of
@@ -73,13 +76,15 @@ class RigBagWriter:
         self.bag.write_serialized(topic, typename, bytes(_STORE.serialize_cdr(msg, typename)),
                                   time_ns)
 
-    def write_static_transforms(self, time_ns: int, footprint: bool = False):
+    def write_static_transforms(self, time_ns: int, footprint: bool = False, extra=()):
         """base_link -> each camera's optical frame; with `footprint` also base_link ->
         base_footprint on the rig's floor (REP-120), from which a rig built from /tf_static
-        takes its floor_z."""
+        takes its floor_z; `extra`: more (child frame, translation, rotation) of base_link
+        (an IMU's frame)."""
         frames = [(cam.frame_id, cam.translation, cam.rotation) for cam in self.rig.cameras]
         if footprint and self.rig.floor_z is not None:
             frames.append(('base_footprint', (0.0, 0.0, self.rig.floor_z), np.eye(3)))
+        frames += list(extra)
         transforms = [_T['geometry_msgs/msg/TransformStamped'](
             header=header(time_ns, self.rig.base_frame), child_frame_id=child,
             transform=_T['geometry_msgs/msg/Transform'](
@@ -131,6 +136,21 @@ class RigBagWriter:
         msg = _T['nav_msgs/msg/Odometry'](header=header(time_ns, frame),
                                           child_frame_id=self.rig.base_frame, pose=pose, twist=twist)
         self._write(topic, 'nav_msgs/msg/Odometry', msg, time_ns)
+
+    def write_imu(self, topic: str, time_ns: int, frame_id: str, gyro, accel,
+                  gyro_variance: float, accel_variance: float):
+        """One sensor_msgs/Imu: angular velocity (rad/s) and specific force (m/s^2) in
+        `frame_id`, diagonal covariances; no orientation (REP-145: covariance[0] = -1)."""
+        no_orientation = np.zeros(9)
+        no_orientation[0] = -1.0
+        msg = _T['sensor_msgs/msg/Imu'](
+            header=header(time_ns, frame_id),
+            orientation=_T['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0),
+            orientation_covariance=no_orientation,
+            angular_velocity=vector3(gyro), angular_velocity_covariance=np.eye(3).ravel() * gyro_variance,
+            linear_acceleration=vector3(accel),
+            linear_acceleration_covariance=np.eye(3).ravel() * accel_variance)
+        self._write(topic, 'sensor_msgs/msg/Imu', msg, time_ns)
 
     def close(self):
         self.bag.close()

@@ -16,6 +16,8 @@ from multicam_ego_motion.bag.rig_bag_writer import IMAGE_CODECS, STAMP_EPOCH_NS,
 from multicam_ego_motion.geometry.camera_intrinsics import CameraIntrinsics
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.geometry.rig import MAX_CAMERAS, CameraMount, Rig, optical_rotation, paper_rig
+from multicam_ego_motion.scenarios.imu import (IMU_FRAME, IMU_ROTATION, IMU_TOPIC, IMU_TRANSLATION,
+                                              ImuNoise, simulate_imu)
 from multicam_ego_motion.scenarios.photometry import LightingEffects
 from multicam_ego_motion.scenarios.renderer import CameraRenderer
 from multicam_ego_motion.scenarios.scene import CAMERA_HEIGHT, scene_for
@@ -59,6 +61,10 @@ def configure_parser(p):
     p.add_argument('--camera-phases', choices=('random',), default=None,
                    help='random: free-running cameras, each with a random capture phase in [0, '
                         'its frame period), drawn from --seed (instead of --camera-offsets-ms)')
+    p.add_argument('--imu-rate', type=float, default=0.0, metavar='HZ',
+                   help='also write an IMU on /imu/data at this rate (200 for a robot\'s MEMS '
+                        'IMU: white noise, turn-on bias and bias random walk, its frame imu_link '
+                        'off base_link in /tf_static); default 0: none')
     p.add_argument('--camera-rates', default=None, metavar='HZ,HZ,...',
                    help='per-camera frame rates, one value per camera in rig order (e.g. '
                         '30,30,15,15; default: --rate for every camera); the wheel stays at --rate')
@@ -177,13 +183,15 @@ def pose_matrix(x, y, yaw):
 def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=480, fx=None,
              k1=0.0, cameras=4, rig_out=None, compression='zstd', progress=True,
              rig_kind='ring', baseline=0.3, camera_offsets_ms=None, camera_rates=None,
-             image_codec=None, jpeg_quality=90, camera_phases=None):
+             image_codec=None, jpeg_quality=90, camera_phases=None, imu_rate=0.0):
     """Render the bag; returns a summary dict (frames, seconds, bag size).
 
     camera_offsets_ms / camera_rates (one per camera): free-running cameras, each captured
     at offset + n / rate; ground truth is written at every capture instant (and at the
     wheel's), the wheel at `rate` as for a synchronised rig. image_codec ('jpeg', 'png'):
-    the cameras' images as CompressedImage (transport `compressed` in the rig)."""
+    the cameras' images as CompressedImage (transport `compressed` in the rig). imu_rate
+    (Hz, > 0): an IMU on /imu/data (scenarios/imu.py), its own noise stream: the images and
+    the wheel are the same as without it."""
     out = Path(out)
     check_output_free(out)
     if rig_kind not in ('ring', 'stereo'):
@@ -194,7 +202,10 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
     intr = CameraIntrinsics.default(width, height, k1)
     if fx is not None:
         intr = CameraIntrinsics(width, height, fx, fx, intr.cx, intr.cy, intr.distortion)
-    texture_seed, noise_seed, wheel_seed = np.random.SeedSequence(seed).spawn(3)
+    # (a child per stream: a fourth one leaves the first three as they were)
+    texture_seed, noise_seed, wheel_seed, imu_seed = np.random.SeedSequence(seed).spawn(4)
+    if imu_rate < 0 or not np.isfinite(imu_rate):
+        raise UserError(f'--imu-rate must be >= 0 Hz, got {imu_rate}')
 
     if camera_phases not in (None, 'random'):
         raise UserError(f'unknown camera phases {camera_phases!r} (random)')
@@ -227,6 +238,18 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
     wheel_v, wheel_w = wheel.measure(wheel_speed, wheel_yaw_rate)
     wx, wy, wyaw = wheel.dead_reckon(times, wheel_v, wheel_w)
     wheel_index = {int(s): i for i, s in enumerate(wheel_stamps)}
+    imu = simulate_imu(trajectory, imu_rate, np.random.default_rng(imu_seed)) if imu_rate > 0 else None
+    imu_stamps = (STAMP_EPOCH_NS + np.round(imu.times * 1e9).astype(np.int64)) if imu is not None else []
+    imu_variances = ImuNoise().sample_variances(imu_rate) if imu is not None else None
+    imu_next = 0
+
+    def write_imu_until(bag, stamp):
+        # in log-time order with the frames: every sample up to and including `stamp`
+        nonlocal imu_next
+        while imu_next < len(imu_stamps) and imu_stamps[imu_next] <= stamp:
+            bag.write_imu(IMU_TOPIC, int(imu_stamps[imu_next]), IMU_FRAME, imu.gyro[imu_next],
+                          imu.accel[imu_next], *imu_variances)
+            imu_next += 1
 
     scene = scene_for(scenario)
     atlas = TextureAtlas(scene, np.random.default_rng(texture_seed))
@@ -238,9 +261,11 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
     images_written = 0
     with RigBagWriter(out, rig, {c.name: intr for c in rig.cameras}, compression,
                       image_codec or 'jpeg', jpeg_quality) as bag:
-        bag.write_static_transforms(int(stamps[0]))
+        bag.write_static_transforms(int(stamps[0]), extra=[(IMU_FRAME, IMU_TRANSLATION, IMU_ROTATION)]
+                                    if imu is not None else ())
         for i in tqdm(range(len(stamps)), unit='frame', desc=f'{scenario}', disable=not progress):
             stamp = int(stamps[i])
+            write_imu_until(bag, stamp)
             images = {}
             for k, cam in enumerate(rig.cameras):
                 if cam.name not in captures[stamp][1]:
@@ -261,6 +286,8 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
                 bag.write_odometry('/wheel/odom', stamp, pose_matrix(wx[j], wy[j], wyaw[j]),
                                    (wheel_v[j], 0.0, 0.0), (0.0, 0.0, wheel_w[j]),
                                    *wheel.variances(times[j], wx[j], wy[j], wheel_v[j], wheel_w[j]))
+        if imu is not None:
+            write_imu_until(bag, int(imu_stamps[-1]))
     elapsed = time.perf_counter() - started
     rig.save(out / 'rig.yaml')
     if rig_out:
@@ -282,7 +309,7 @@ def run(args) -> int:
                                                            '--camera-offsets-ms'),
                        camera_rates=parse_camera_list(args.camera_rates, n_cameras, '--camera-rates'),
                        image_codec=args.compressed, jpeg_quality=args.jpeg_quality,
-                       camera_phases=args.camera_phases)
+                       camera_phases=args.camera_phases, imu_rate=args.imu_rate)
     print(f'{args.out}: {summary["frames"]} frames x {len(summary["cameras"])} cameras '
           f'({", ".join(summary["cameras"])}), path {summary["path_length"]:.1f} m, '
           f'rendered and written in {summary["seconds"]:.1f} s ({summary["fps"]:.1f} frames/s), '
