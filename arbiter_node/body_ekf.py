@@ -18,6 +18,10 @@ turn short: at 8 Hz in a 1.3 rad/s turn, 13 mm sideways per 17 cm step, and land
 triangulated from those poses carry it (loop ATE 1.07 -> 0.74 %, rotation drift 0.178 ->
 0.104 deg/m with the arc).
 
+With a gyro (`gyro_bias=True`) the state has 3 more: b_g, the gyro's bias in base_link
+(rad/s), a random walk; a gyro measures w + b_g (update_gyro), the cameras tell the two apart.
+Without one the state stays the 12 above, and so do the results, to the last bit.
+
 Everything the filter holds is guarded: covariances are symmetrised and their eigenvalues
 clamped, non-finite inputs are refused, a failed step restores the previous state.
 """
@@ -41,14 +45,28 @@ class BodyEkfParams:
     max_dt: float = 1.0                  # s: a longer gap is integrated in steps of this size
                                          # (at most 100 steps)
     arc_integration: bool = True         # position along the arc of the twist (False: the chord)
+    gyro_bias_std: float = 0.01          # rad/s: the gyro bias's prior (gyro_bias=True)
+    gyro_bias_walk: float = 1e-4         # rad/s/sqrt(s): its random walk
+
+
+BIAS = slice(12, 15)        # the gyro bias's place in the state (gyro_bias=True)
 
 
 class BodyEKF:
-    def __init__(self, params: Optional[BodyEkfParams] = None):
+    def __init__(self, params: Optional[BodyEkfParams] = None, gyro_bias: bool = False):
         self.params = params or BodyEkfParams()
-        self.kf = ExtendedKalmanFilter(dim_x=12, dim_z=6)
+        self.dim = 15 if gyro_bias else 12
+        self.kf = ExtendedKalmanFilter(dim_x=self.dim, dim_z=6)
+        self.kf.x = np.zeros((self.dim, 1))
+        self.kf.P = np.zeros((self.dim, self.dim))
+        if gyro_bias:
+            self.kf.P[BIAS, BIAS] = np.eye(3) * self.params.gyro_bias_std ** 2
         self.R_nom = np.eye(3)
         self.reinitialize(np.eye(4), np.eye(6) * 1e-9)
+
+    @property
+    def has_gyro_bias(self) -> bool:
+        return self.dim == 15
 
     # ------------------------------------------------------------------ state access
     def reinitialize(self, T: np.ndarray, cov: np.ndarray, twist: Optional[np.ndarray] = None,
@@ -59,14 +77,18 @@ class BodyEKF:
             raise ValueError('reinitialize: non-finite pose')
         U, _, Vt = np.linalg.svd(T[:3, :3])          # re-orthonormalise whatever we were given
         self.R_nom = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
-        x = np.zeros((12, 1))
+        x = np.zeros((self.dim, 1))
         x[:3, 0] = T[:3, 3]
         if twist is not None and np.all(np.isfinite(twist)):
-            x[6:, 0] = twist
-        P = np.zeros((12, 12))
+            x[6:12, 0] = twist
+        P = np.zeros((self.dim, self.dim))
         P[:6, :6] = condition_covariance(cov, max_eig=MAX_VARIANCE)
         tc = twist_cov if twist_cov is not None else np.eye(6) * self.params.initial_twist_std ** 2
-        P[6:, 6:] = condition_covariance(tc, max_eig=MAX_VARIANCE)
+        P[6:12, 6:12] = condition_covariance(tc, max_eig=MAX_VARIANCE)
+        if self.has_gyro_bias:
+            # the gyro's bias is the sensor's, not the pose's: kept through a restart
+            x[BIAS, 0] = self.kf.x[BIAS, 0]
+            P[BIAS, BIAS] = self.kf.P[BIAS, BIAS]
         self.kf.x = x
         self.kf.P = P
 
@@ -81,11 +103,20 @@ class BodyEKF:
     @property
     def twist(self) -> np.ndarray:
         """(vx, vy, vz, wx, wy, wz) in base_link."""
-        return self.kf.x[6:, 0].copy()
+        return self.kf.x[6:12, 0].copy()
 
     @property
     def twist_covariance(self) -> np.ndarray:
-        return condition_covariance(self.kf.P[6:, 6:], max_eig=MAX_VARIANCE)
+        return condition_covariance(self.kf.P[6:12, 6:12], max_eig=MAX_VARIANCE)
+
+    @property
+    def gyro_bias(self) -> Optional[np.ndarray]:
+        """The gyro's bias estimate in base_link (rad/s); None without a gyro."""
+        return self.kf.x[BIAS, 0].copy() if self.has_gyro_bias else None
+
+    @property
+    def gyro_bias_covariance(self) -> Optional[np.ndarray]:
+        return self.kf.P[BIAS, BIAS].copy() if self.has_gyro_bias else None
 
     # ------------------------------------------------------------------ internals
     def _snapshot(self):
@@ -115,33 +146,54 @@ class BodyEKF:
         return True
 
     # ------------------------------------------------------------------ filter steps
-    def predict(self, dt: float):
-        """Constant body-velocity prediction over dt seconds (dt <= 0 or non-finite: no-op)."""
+    def predict(self, dt: float, gyro: Optional[Tuple[np.ndarray, np.ndarray]] = None):
+        """Constant body-velocity prediction over dt seconds (dt <= 0 or non-finite: no-op).
+        gyro: (the gyro's mean rate over these dt seconds in base_link, its 3x3 covariance;
+        imu_buffer): the rotation follows the gyro less its bias instead of w (gyro_bias=True)."""
         if not np.isfinite(dt) or dt <= 0:
             return
+        if gyro is not None and not self.has_gyro_bias:
+            raise ValueError('predict with a gyro: this filter has no gyro bias state (gyro_bias=False)')
         # long gaps in at most 100 steps: bounded cost whatever the gap
         n = int(min(100, np.ceil(dt / self.params.max_dt)))
         for _ in range(n):
-            self._predict_step(dt / n)
+            self._predict_step(dt / n, gyro)
 
-    def _predict_step(self, dt: float):
+    def _predict_step(self, dt: float, gyro=None):
         snap = self._snapshot()
         R = self.R_nom
         v = self.kf.x[6:9, 0]
         RJ = R @ se3.so3_left_jacobian(self.kf.x[9:12, 0] * dt) if self.params.arc_integration else R
-        F = np.eye(12)
+        F = np.eye(self.dim)
         F[0:3, 3:6] = -se3.skew(RJ @ v * dt)
         F[0:3, 6:9] = RJ * dt
-        F[3:6, 9:12] = R * dt
         qa, qw = self.params.accel_noise, self.params.angular_accel_noise
-        Q = np.zeros((12, 12))
+        Q = np.zeros((self.dim, self.dim))
+        if self.has_gyro_bias:
+            Q[BIAS, BIAS] = np.eye(3) * self.params.gyro_bias_walk ** 2 * dt
         for i, q in ((0, qa), (3, qw)):          # (p, v) and (theta, w): white-acceleration blocks
             Q[i:i + 3, i:i + 3] = np.eye(3) * q * dt ** 3 / 3
             Q[i:i + 3, i + 6:i + 9] = R * q * dt ** 2 / 2   # odom position vs body velocity
             Q[i + 6:i + 9, i:i + 3] = R.T * q * dt ** 2 / 2
             Q[i + 6:i + 9, i + 6:i + 9] = np.eye(3) * q * dt
+        u = None
+        if gyro is None:
+            F[3:6, 9:12] = R * dt
+        else:
+            # dtheta = R (rate - b_g) dt: the gyro is an input (B u), the bias a state; the
+            # angle's noise is the rate's, the angular acceleration only moves w
+            rate, cov = np.asarray(gyro[0], float).reshape(3), np.asarray(gyro[1], float)
+            F[3:6, BIAS] = -R * dt
+            u = np.zeros((self.dim, 1))
+            u[3:6, 0] = R @ rate * dt
+            Q[3:6, 3:6] = R @ cov @ R.T * dt * dt
+            Q[3:6, 9:12] = Q[9:12, 3:6] = 0.0
         self.kf.F, self.kf.Q = F, Q
-        self.kf.predict()
+        if u is None:
+            self.kf.predict()
+        else:
+            self.kf.B = np.eye(self.dim)       # (filterpy: x = F x + B u)
+            self.kf.predict(u=u)
         self._finish(snap)
 
     def pose_innovation(self, T_meas: np.ndarray, cov: np.ndarray) -> Tuple[np.ndarray, float]:
@@ -158,7 +210,7 @@ class BodyEKF:
         y, d2 = self.pose_innovation(T_meas, cov)
         if not np.isfinite(d2) or d2 > gate_chi2:
             return False, d2
-        H = np.hstack([np.eye(6), np.zeros((6, 6))])
+        H = np.hstack([np.eye(6), np.zeros((6, self.dim - 6))])
         # z = H x + y makes filterpy's residual z - H x equal the se3 innovation
         z = H @ self.kf.x + y.reshape(6, 1)
         return self._update(z, H, cov), d2
@@ -173,7 +225,7 @@ class BodyEKF:
         if not (np.all(np.isfinite(z6[axes])) and np.all(np.isfinite(sub))) or not axes:
             return False, float('inf')
         sub = condition_covariance(sub, max_eig=MAX_VARIANCE)
-        H = np.zeros((len(axes), 12))
+        H = np.zeros((len(axes), self.dim))
         for r, a in enumerate(axes):
             H[r, 6 + a] = 1.0
         z = z6[axes].reshape(-1, 1)
@@ -182,6 +234,26 @@ class BodyEKF:
         if d2 > gate_chi2:
             return False, d2
         return self._update(z, H, sub), d2
+
+    def update_gyro(self, rate: Sequence[float], cov: np.ndarray,
+                    gate_chi2: float = float('inf')) -> Tuple[bool, float]:
+        """A gyro's mean rate over the last step, in base_link (rad/s, 3x3 covariance): it
+        measures w + b_g. Needs gyro_bias=True."""
+        if not self.has_gyro_bias:
+            raise ValueError('update_gyro: this filter has no gyro bias state (gyro_bias=False)')
+        z = np.asarray(rate, float).reshape(3, 1)
+        cov = np.asarray(cov, float)
+        if not (np.all(np.isfinite(z)) and np.all(np.isfinite(cov))):
+            return False, float('inf')
+        cov = condition_covariance(cov, max_eig=MAX_VARIANCE)
+        H = np.zeros((3, self.dim))
+        H[:, 9:12] = np.eye(3)
+        H[:, BIAS] = np.eye(3)
+        y = (z - H @ self.kf.x)[:, 0]
+        d2 = mahalanobis2(y, H @ self.kf.P @ H.T + cov)
+        if d2 > gate_chi2:
+            return False, d2
+        return self._update(z, H, cov), d2
 
     def _update(self, z, H, Rm) -> bool:
         snap = self._snapshot()

@@ -1,0 +1,86 @@
+"""An IMU's samples between the general arbiter's frames (ROS-free): the gyro's mean rate
+over a frame step in base_link, with its covariance, for BodyEKF.update_gyro.
+
+Samples come in the IMU's own frame (REP-145: the message's frame_id); the mount, base_link
+-> IMU frame from /tf_static or the rig file, turns them into base_link. The step's rotation
+is the product of the samples' rotations, each held over the time to the next sample and
+clipped to the step; its mean rate, log(dR) / dt, is what the body's w + b_g was on average.
+Its covariance is the white noise's: a sample's variance (the message's covariance, else
+`gyro_variance`) over the samples averaged. The bias is the filter's business.
+
+A sample that is not finite or not after the newest one is refused with the reason; a step
+the samples do not cover (a gap longer than `max_gap_s`) has no rate.
+"""
+from bisect import bisect_right
+from typing import List, Optional, Tuple
+
+import numpy as np
+
+from multicam_ego_motion.geometry import se3
+
+
+class ImuBuffer:
+    def __init__(self, R_base_imu: np.ndarray, gyro_variance: float = 1e-5,
+                 max_gap_s: float = 0.05, keep_s: float = 5.0):
+        R = np.asarray(R_base_imu, float)
+        if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6):
+            raise ValueError('IMU mount: not a rotation')
+        self.R = R
+        self.gyro_variance = float(gyro_variance)
+        self.max_gap_ns = int(max_gap_s * 1e9)
+        self.keep_ns = int(keep_s * 1e9)
+        self.stamps: List[int] = []
+        self.rates: List[np.ndarray] = []          # rad/s in base_link
+        self.variances: List[float] = []           # per axis, of one sample
+
+    def add(self, stamp_ns: int, gyro, gyro_covariance=None) -> Optional[str]:
+        """One sample (gyro in the IMU's frame, rad/s; its 3x3 covariance or None). Returns
+        why it was refused, None when taken."""
+        g = np.asarray(gyro, float).reshape(3)
+        if not np.all(np.isfinite(g)):
+            return f'gyro sample at {stamp_ns / 1e9:.6f} s is not finite'
+        if self.stamps and stamp_ns <= self.stamps[-1]:
+            return (f'gyro sample at {stamp_ns / 1e9:.6f} s is not after the newest '
+                    f'({self.stamps[-1] / 1e9:.6f} s): out of order or repeated')
+        var = self.gyro_variance
+        if gyro_covariance is not None:
+            c = np.asarray(gyro_covariance, float).reshape(3, 3)
+            # REP-145: all zeros is "unknown", -1 in the first element "not measured"
+            if np.all(np.isfinite(c)) and c[0, 0] > 0:
+                var = float(np.max(np.diag(c)))
+        self.stamps.append(int(stamp_ns))
+        self.rates.append(self.R @ g)
+        self.variances.append(var)
+        cut = bisect_right(self.stamps, int(stamp_ns) - self.keep_ns)
+        if cut:
+            del self.stamps[:cut], self.rates[:cut], self.variances[:cut]
+        return None
+
+    def settled(self, stamp_ns: int) -> bool:
+        """A sample at or after the stamp is in: a step ending there is covered."""
+        return bool(self.stamps) and self.stamps[-1] >= stamp_ns
+
+    def mean_rate(self, t0_ns: int, t1_ns: int) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+        """(mean rate in base_link over [t0, t1], its 3x3 covariance), or None when the
+        samples do not cover the step."""
+        if t1_ns <= t0_ns or not self.stamps:
+            return None
+        i = bisect_right(self.stamps, t0_ns) - 1      # the sample in force at t0
+        if i < 0 or self.stamps[-1] < t1_ns:
+            return None
+        dR = np.eye(3)
+        used, var = 0, 0.0
+        t = t0_ns
+        while t < t1_ns:
+            nxt = self.stamps[i + 1] if i + 1 < len(self.stamps) else t1_ns
+            if nxt - self.stamps[i] > self.max_gap_ns:
+                return None
+            end = min(nxt, t1_ns)
+            dR = dR @ se3.rotvec_to_R(self.rates[i] * ((end - t) * 1e-9))
+            used += 1
+            var += self.variances[i]
+            t, i = end, i + 1
+        dt = (t1_ns - t0_ns) * 1e-9
+        rate = se3.R_to_rotvec(dR) / dt
+        # the mean of `used` samples' white noise
+        return rate, np.eye(3) * (var / used) / used

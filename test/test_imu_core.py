@@ -1,0 +1,102 @@
+"""The IMU's part of the body filter, without ROS: the gyro's mean rate over a frame step in
+base_link (arbiter_node/imu_buffer) and the body EKF with a gyro bias state (body_ekf,
+update_gyro), on the generator's IMU (scenarios/imu.py): noise, a turn-on bias and its walk,
+mounted off and turned from base_link."""
+import math
+
+import numpy as np
+import pytest
+
+from arbiter_node.body_ekf import BodyEKF
+from arbiter_node.imu_buffer import ImuBuffer
+from multicam_ego_motion.geometry import se3
+from multicam_ego_motion.scenarios.imu import IMU_ROTATION, ImuNoise, simulate_imu
+from multicam_ego_motion.scenarios.trajectories import DENSE_DT, integrate_unicycle, smooth_step
+
+MS = 1_000_000
+
+
+def test_mean_rate_is_the_gyro_turned_into_base_link():
+    buf = ImuBuffer(IMU_ROTATION, gyro_variance=4e-6)
+    g = np.array([0.1, -0.2, 0.5])                 # constant, in the IMU's frame
+    for k in range(201):                           # 1 s at 200 Hz
+        assert buf.add(k * 5 * MS, g) is None
+    rate, cov = buf.mean_rate(100 * MS, 600 * MS)
+    np.testing.assert_allclose(rate, IMU_ROTATION @ g, atol=1e-12)
+    np.testing.assert_allclose(cov, np.eye(3) * 4e-6 / 100)   # 100 samples averaged
+    assert buf.mean_rate(900 * MS, 1100 * MS) is None        # beyond the newest sample
+    assert buf.settled(1000 * MS) and not buf.settled(1001 * MS)
+    # refused, with the reason; the buffer goes on
+    assert 'out of order' in buf.add(500 * MS, g)
+    assert 'not finite' in buf.add(1005 * MS, [np.nan, 0, 0])
+    # a gap of 0.2 s (a silent IMU): the steps across it have no rate
+    assert buf.add(1200 * MS, g) is None
+    assert buf.mean_rate(950 * MS, 1150 * MS) is None
+    # the message's covariance when it has one (REP-145: zeros = unknown)
+    buf.add(1205 * MS, g, np.eye(3) * 9e-6)
+    buf.add(1210 * MS, g, np.zeros((3, 3)))
+    assert buf.variances[-2:] == [9e-6, 4e-6]
+
+
+def test_mean_rate_integrates_a_varying_rate():
+    buf = ImuBuffer(np.eye(3))
+    w = lambda t: np.array([0.0, 0.0, 2.0 * math.sin(t)])
+    for k in range(401):
+        buf.add(k * 5 * MS, w(k * 0.005))
+    rate, _ = buf.mean_rate(250 * MS, 1750 * MS)
+    # the angle turned over the step: -2 (cos 1.75 - cos 0.25), to the sampling's O(dt)
+    assert rate[2] * 1.5 == pytest.approx(-2 * (math.cos(1.75) - math.cos(0.25)), abs=6e-3)
+
+
+def spin_in_place(rest_s=3.0, spin_s=6.0, after_s=1.0):
+    """At rest, three quarters of a turn in place, at rest again."""
+    t = np.arange(0.0, rest_s + spin_s + after_s + DENSE_DT / 2, DENSE_DT)
+    u = (t - rest_s) / spin_s
+    # a smooth bump whose integral over the spin is 3/2 pi
+    shape = smooth_step(u * 2) * smooth_step((1 - u) * 2)
+    yaw_rate = shape * 1.5 * np.pi / (np.sum(shape) * DENSE_DT)
+    return integrate_unicycle(t, np.zeros_like(t), yaw_rate, 0.0, 0.0, 0.0)
+
+
+def heading_after_spin(use_gyro: bool, seed: int = 4):
+    """The body EKF at 10 Hz: camera fixes (the truth, 0.3 deg noise) while at rest, then
+    none through the spin (as where a rig's cameras lose their maps); with the gyro on every
+    step. Returns (heading error at the end in deg, the filter, the true bias in base_link)."""
+    traj = spin_in_place()
+    rng = np.random.default_rng(seed)
+    imu = simulate_imu(traj, 200.0, rng, ImuNoise())
+    buf = ImuBuffer(IMU_ROTATION, ImuNoise().sample_variances(200.0)[0])
+    samples = iter(zip(np.round(imu.times * 1e9).astype(np.int64), imu.gyro))
+    ekf = BodyEKF(gyro_bias=use_gyro)
+    ekf.reinitialize(np.eye(4), np.eye(6) * 1e-6)
+    frames = np.arange(0, 100) * 100 * MS            # to 9.9 s
+    for k in range(1, len(frames)):
+        while not buf.settled(frames[k]):           # (as they come: the buffer keeps 5 s)
+            buf.add(*next(samples))
+        gyro = buf.mean_rate(frames[k - 1], frames[k]) if use_gyro else None
+        ekf.predict(0.1, gyro)
+        if gyro is not None:
+            ekf.update_gyro(*gyro)
+        t = frames[k] * 1e-9
+        if t <= 3.0:
+            noise = np.r_[rng.standard_normal(3) * 1e-3, rng.standard_normal(3) * math.radians(0.3)]
+            T = se3.make_T(se3.rotvec_to_R(noise[3:]) @ se3.rotvec_to_R([0, 0, np.interp(t, traj.t, traj.yaw)]),
+                           noise[:3])
+            ekf.update_pose(T, np.diag([1e-6] * 3 + [math.radians(0.3) ** 2] * 3))
+    yaw = math.atan2(ekf.T[1, 0], ekf.T[0, 0])
+    err = math.degrees(math.remainder(yaw - traj.yaw[-1], 2 * math.pi))
+    return err, ekf, IMU_ROTATION @ imu.gyro_bias[-1]
+
+
+def test_the_gyro_carries_the_heading_through_a_spin_the_cameras_do_not_see():
+    err, ekf, bias = heading_after_spin(True)
+    # the bias learnt while the cameras saw the rig at rest: 0.3 deg/s unknown would be 2.9
+    # deg over the spin's 6 s and the second after it
+    assert abs(err) < 0.5, err
+    assert abs(ekf.gyro_bias[2] - bias[2]) < 0.2 * np.linalg.norm(bias), (ekf.gyro_bias, bias)
+    assert ekf.gyro_bias_covariance[2, 2] < 0.001 ** 2
+    # without the gyro the filter holds the rest's zero rate: the turn is lost
+    err_without, plain, _ = heading_after_spin(False)
+    assert abs(err_without) > 45 and plain.gyro_bias is None
+    with pytest.raises(ValueError, match='no gyro bias'):
+        plain.update_gyro(np.zeros(3), np.eye(3))
