@@ -12,7 +12,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry, Path
-from sensor_msgs.msg import PointCloud2
+from sensor_msgs.msg import Imu, PointCloud2
 from rclpy.node import Node
 from std_msgs.msg import Int64MultiArray
 from std_srvs.srv import Trigger
@@ -37,7 +37,8 @@ from multicam_ego_motion.ros_plumbing.node_parameters import declare_from_table
 from multicam_ego_motion.ros_plumbing.pose_messages import (covariance_field, estimate_to_msg, fill_pose,
                                                msg_to_estimate, ns_to_stamp, stamp_to_ns,
                                                transform_msg)
-from multicam_ego_motion.ros_plumbing.qos import LATCHED, RELIABLE
+from multicam_ego_motion.ros_plumbing.imu_messages import imu_gyro, imu_gyro_covariance
+from multicam_ego_motion.ros_plumbing.qos import LATCHED, RELIABLE, imu_qos
 from multicam_ego_motion.geometry.rig import load_rig
 from multicam_ego_motion.geometry.se3 import is_valid_covariance
 
@@ -56,6 +57,8 @@ NODE_PARAMETERS = {
     'sync_window_s': (0.0, 'optional grouping of free-running cameras: estimates whose stamps lie within this of one another are one frame, fused at its latest stamp (each moved there with the EKF\'s twist); 0 (default) = estimates with identical stamps are fused together and every other one at its own stamp, in stamp order, which suits any phase and any mix of rates. A lockstep player must group frames by the same window', 0.0, 1.0),
     'learn_sync_window': (False, 'with sync_window_s 0: learn the window from the cameras\' first estimates (arbiter_node/capture_spread) when their stamps differ, use it from then on and say which sync_window_s to set', None, None),
     'wheel_wait_s': (0.5, 'then the longest wait for the wheel reading of that frame (while a wheel publisher is connected)', 0.0, 60.0),
+    'imu_wait_s': (0.05, 'with the rig\'s IMU (use_imu): the longest wait for its samples up to a frame\'s stamp (while an IMU publisher is connected)', 0.0, 60.0),
+    'imu_qos': ('sensor_data', 'IMU subscription QoS: sensor_data (best effort, as drivers publish) or reliable (lockstep replay)', None, None),
     'path_max_poses': (5000, 'poses kept on /ego_motion/path (oldest dropped)', 1, 1000000),
     'path_min_spacing_m': (0.05, '/ego_motion/path keeps a pose every this many metres', 0.0, 100.0),
     'path_min_turn_rad': (0.1, '... or every this much rotation', 0.0, 3.15),
@@ -103,6 +106,11 @@ class GeneralArbiterNode(Node):
         self.camera_subs = {}
         self.take_local(())
         self.held = []                       # (sync group, since): waiting for its wheel reading
+        self.imu_sub = None
+        self.imu_error = None                # the last problem said of the IMU (said once)
+        if self.fusion.wants_imu():
+            self.imu_sub = self.create_subscription(Imu, self.rig.imu.topic, self.on_imu,
+                                                    imu_qos(p['imu_qos']))
         self.wheel_sub = None
         if p['use_wheel_odometry']:
             self.wheel_sub = self.create_subscription(Odometry, p['wheel_odometry_topic'],
@@ -125,6 +133,24 @@ class GeneralArbiterNode(Node):
     def on_wheel(self, msg: Odometry):
         self.wheel.add(stamp_to_ns(msg.header.stamp), *twist_from_odometry(msg))
         self.fuse_held()
+
+    def on_imu(self, msg: Imu):
+        problem = None
+        if msg.header.frame_id != self.rig.imu.frame_id:
+            problem = (f'{self.rig.imu.topic}: sample in frame {msg.header.frame_id!r}, the rig\'s IMU '
+                       f'is {self.rig.imu.frame_id!r}: sample not used')
+        else:
+            problem = self.fusion.add_imu(stamp_to_ns(msg.header.stamp), imu_gyro(msg),
+                                          imu_gyro_covariance(msg))
+        if problem is not None and problem != self.imu_error:
+            self.get_logger().error(problem, throttle_duration_sec=5.0)
+        self.imu_error = problem
+        self.fuse_held()
+
+    def imu_settled(self, stamp_ns) -> bool:
+        # As the wheel: the gyro's samples up to the frame, whichever callback came first
+        return (self.imu_sub is None or self.imu_sub.get_publisher_count() == 0
+                or self.fusion.imu_settled(stamp_ns))
 
     def on_bearings(self, camera, quarter, msg):
         try:
@@ -191,6 +217,8 @@ class GeneralArbiterNode(Node):
             # The wheel reading at the frame's first capture (free-running cameras: the wheel
             # ticks with the frame clock, and a later reading only comes with the next frame).
             if not self.wheel_settled(g.first_ns) and time.monotonic() - since < self.p['wheel_wait_s']:
+                return
+            if not self.imu_settled(g.stamp_ns) and time.monotonic() - since < self.p['imu_wait_s']:
                 return
             self.held.pop(0)
             t0 = time.thread_time()

@@ -21,6 +21,7 @@ import numpy as np
 from arbiter_node.body_ekf import BodyEKF, BodyEkfParams
 from arbiter_node.camera_median import median_filter
 from arbiter_node.covariance import condition_covariance
+from arbiter_node.imu_buffer import ImuBuffer
 from arbiter_node.quarter_fusion import CHI2_6DOF_999, information_fusion
 from arbiter_node.time_shift import shift_pose
 from arbiter_node.rig_motion_fit import fit_rig_motion
@@ -56,6 +57,10 @@ PARAMETERS = {
     'lost_timeout_s': (2.0, 'without camera updates or wheel prior for this long, the state is lost', 0.1, 600.0),
     'arc_integration': (True, 'EKF prediction moves along the arc of the twist (constant body twist), not along the heading at the start of the step', None, None),
     'wheel_planar_only': (True, 'use only vx, vy, wz of the wheel twist (a wheeled base measures nothing else)', None, None),
+    'use_imu': (True, 'fuse the gyro of the rig\'s IMU (rig file `imu`, or its frame in /tf_static) when one publishes: the rotation between frames follows it, less its bias, which the EKF estimates', None, None),
+    'imu_gyro_variance': (1e-5, 'a gyro sample\'s variance per axis ((rad/s)^2) when its message has no covariance', 1e-12, 1.0),
+    'gyro_bias_std': (0.01, 'the gyro bias\'s prior std (rad/s; MEMS: a few tenths of a degree per second)', 1e-6, 1.0),
+    'gyro_bias_walk': (1e-4, 'the gyro bias\'s random walk (rad/s/sqrt(s))', 1e-9, 1.0),
     'planar_motion': (True, 'the base moves on the rig\'s level floor (rig floor_z, not with floor_level false; robot_localization calls it two_d_mode): every frame measures its vz, wx, wy as 0', None, None),
     'planar_twist_std': (1e-3, 'std of that planar-motion measurement of vz (m/s), wx and wy (rad/s)', 1e-6, 10.0),
     'wheel_gate_chi2': (1e3, 'chi-square gate of the wheel twist against the EKF twist (slip detection)', 1.0, 1e9),
@@ -138,8 +143,12 @@ class GeneralFusion:
         p = self.params
         self.ekf = BodyEKF(BodyEkfParams(accel_noise=p['accel_noise'], angular_accel_noise=p['angular_accel_noise'],
                                          initial_twist_std=p['initial_twist_std'], max_dt=p['max_dt'],
-                                         arc_integration=p['arc_integration']))
+                                         arc_integration=p['arc_integration'],
+                                         gyro_bias_std=p['gyro_bias_std'], gyro_bias_walk=p['gyro_bias_walk']),
+                           gyro_bias=self.wants_imu())
         self.ekf.reinitialize(np.eye(4), np.eye(6) * p['initial_pose_std'] ** 2)
+        self.imu = (ImuBuffer(self.rig.imu.rotation, p['imu_gyro_variance'])
+                    if self.wants_imu() else None)
         self.last_stamp_ns: Optional[int] = None
         self.wheel_used_ns: Optional[int] = None       # the stamp of the last wheel reading applied
         self.last_support_ns: Optional[int] = None     # last camera update or wheel prior
@@ -152,6 +161,27 @@ class GeneralFusion:
         self.last_scale: Optional[RigScaleResult] = None
         self.wheel_seen = False
         self.scale = ScaleState(self.rig, self.params)
+
+    # -------------------------------------------------------------- IMU
+    def wants_imu(self) -> bool:
+        """Whether the rig's IMU's gyro is fused (imu_buffer, body_ekf gyro_bias)."""
+        return bool(self.params['use_imu'] and getattr(self.rig, 'imu', None) is not None)
+
+    def add_imu(self, stamp_ns: int, gyro, gyro_covariance=None) -> Optional[str]:
+        """One IMU sample (gyro in the IMU's frame, rad/s); returns why it was refused."""
+        return None if self.imu is None else self.imu.add(stamp_ns, gyro, gyro_covariance)
+
+    def imu_settled(self, stamp_ns: int) -> bool:
+        """The IMU's samples cover the time up to stamp_ns (always, without an IMU)."""
+        return self.imu is None or self.imu.settled(stamp_ns)
+
+    def _predict(self, t0_ns: int, t1_ns: int):
+        """The EKF from t0 to t1, its rotation following the gyro where its samples cover
+        the step (else the constant twist's)."""
+        gyro = self.imu.mean_rate(t0_ns, t1_ns) if self.imu is not None else None
+        self.ekf.predict((t1_ns - t0_ns) * 1e-9, gyro)
+        if gyro is not None:
+            self.ekf.update_gyro(*gyro)
 
     # -------------------------------------------------------------- scale hook
     def observe_scale(self, T_prev: np.ndarray, T_now: np.ndarray,
@@ -238,11 +268,11 @@ class GeneralFusion:
         if wheel_first:
             # Why: applied at the frame's latest stamp, a wheel speed 24 ms old under 1.5 m/s^2
             # slowed every prediction, and the fused poses fed back carried it into the maps.
-            self.ekf.predict((wheel_stamp_ns - self.last_stamp_ns) * 1e-9)
+            self._predict(self.last_stamp_ns, wheel_stamp_ns)
             wheel_used = self._wheel_update(wheel_twist)
-            self.ekf.predict((stamp_ns - wheel_stamp_ns) * 1e-9)
+            self._predict(wheel_stamp_ns, stamp_ns)
         elif self.last_stamp_ns is not None:
-            self.ekf.predict((stamp_ns - self.last_stamp_ns) * 1e-9)   # dt <= 0 is a no-op
+            self._predict(self.last_stamp_ns, stamp_ns)   # dt <= 0 is a no-op
         self.last_stamp_ns = stamp_ns if self.last_stamp_ns is None else max(stamp_ns, self.last_stamp_ns)
         T_prev = self.last_T
 
@@ -416,8 +446,15 @@ class GeneralFusion:
         vw = [3, 4, 5, 0, 1, 2]     # the fit's (rotation, t) -> the twist's (v, w)
         cov = C[np.ix_(vw, vw)]
         # x4: single fits scatter about twice their predicted std (docs/fusion.md, scale)
-        used, _ = self.ekf.update_twist(np.r_[fit.t, rotvec] / dt, 4.0 * cov / dt ** 2)
+        used, _ = self.ekf.update_twist(np.r_[fit.t, rotvec] / dt, 4.0 * cov / dt ** 2,
+                                        axes=self._twist_axes((0, 1, 2, 3, 4, 5)))
         return used
+
+    def _twist_axes(self, axes):
+        """The axes of a twist measured from the tracks of the previous frame pair to use: with
+        a gyro, not its rotation (a frame late, it read the gyro's rate minus the step's change
+        as a bias of 0.09 rad/s at the start of a spin)."""
+        return tuple(a for a in axes if a < 3) if self.imu is not None else tuple(axes)
 
     def _road_twist(self) -> int:
         """road_twist: every camera's motion between the two previous frames (this frame's
@@ -450,7 +487,9 @@ class GeneralFusion:
             return 0
         # without the road's length, the rotation only: a direction with a length from the
         # filter's own speed held a car that started at rest at rest
-        axes = (0, 1, 2, 3, 4, 5) if motion.length_known else (3, 4, 5)
+        axes = self._twist_axes((0, 1, 2, 3, 4, 5) if motion.length_known else (3, 4, 5))
+        if not axes:
+            return 0
         ok, _ = self.ekf.update_twist(twist, cov, axes=axes, gate_chi2=p['ekf_gate_chi2'])
         return int(ok)
 

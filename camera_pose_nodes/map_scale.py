@@ -63,13 +63,14 @@ def scale_positions(P: np.ndarray, k: float, centre) -> np.ndarray:
 
 
 def rescale_filter(kf, k: float, centre):
-    """A 12-state filter laid out as position (0:3), orientation, linear velocity (6:9),
-    angular velocity (the quarter's PoseEKF and the general arbiter's BodyEKF both are):
-    position about centre, velocity and their covariance rows/columns by k."""
+    """A filter laid out as position (0:3), orientation, linear velocity (6:9), angular
+    velocity (the quarter's PoseEKF and the general arbiter's BodyEKF both are; the latter's
+    gyro bias after them is unitless in metres): position about centre, velocity and their
+    covariance rows/columns by k."""
     x = kf.x
     x[0:3, 0] = scale_positions(x[0:3, 0], k, centre)
     x[6:9, 0] = k * x[6:9, 0]
-    s = np.ones(12)
+    s = np.ones(len(x))
     s[0:3] = k
     s[6:9] = k
     kf.P = kf.P * s[:, None] * s[None, :]

@@ -31,6 +31,7 @@ def configure_parser(p):
     p.add_argument('--ground-truth-topic', default='/ground_truth/odom')
     p.add_argument('--ack-timeout', type=float, default=120.0, help='lockstep: longest wait per frame [s]')
     p.add_argument('--no-wheel', action='store_true', help='do not fuse /wheel/odom')
+    p.add_argument('--no-imu', action='store_true', help='do not fuse the rig\'s IMU (/imu/data)')
     p.add_argument('--start-offset', type=float, default=0.0, help='skip this much of the bag [s]')
     p.add_argument('--duration', type=float, help='play only this much of the bag [s]')
     p.add_argument('--no-rebalance', action='store_true', help='keep the start allocation')
@@ -85,13 +86,22 @@ def resolve_rig(bag_reader, rig_arg):
         rig = load_rig(path)
     else:
         rig, path = rig_from_bag(bag_reader), None
-    found = with_detected_stereo_pairs(bag_reader, with_bag_transports(bag_reader, rig))
+    found = with_detected_stereo_pairs(bag_reader, with_bag_imu(bag_reader, with_bag_transports(bag_reader, rig)))
     if found is rig or path is None:
         return found, path
     # the nodes read the rig file: a rig completed from the bag goes to a new file
     out = Path(tempfile.mkdtemp(prefix='ego_motion_rig_')) / 'rig.yaml'
     found.save(out)
     return found, out
+
+
+def with_bag_imu(bag_reader, rig):
+    """The bag's IMU (bag/imu_mount.py) when the rig names none."""
+    from multicam_ego_motion.bag.imu_mount import with_bag_imu as find
+    rig, said = find(bag_reader, rig)
+    if said:
+        print(f'rig: {said}', flush=True)
+    return rig
 
 
 def with_bag_transports(bag_reader, rig):
@@ -153,11 +163,13 @@ LOCKSTEP_DEPTH = 2
 
 
 def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False,
-                    sync_window_s=None):
+                    sync_window_s=None, use_imu: bool = True):
     # Lockstep replay waits for everything (deterministic); rate mode must keep going.
     wait = 60.0 if lockstep else 0.3
     general = {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2,
                'wheel_wait_s': 2.0 if lockstep else 0.05,
+               'imu_wait_s': 2.0 if lockstep else 0.05,
+               'imu_qos': 'reliable' if lockstep else 'sensor_data',
                'use_wheel_odometry': use_wheel,
                # rate mode: the lag behind the frames (frame skipping, max_lag_s) is read on
                # the bag's /clock; lockstep processes every frame
@@ -167,6 +179,8 @@ def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False,
         general['odom_rate_hz'] = 0.0     # the player waits for each fused stamp's /odom
     if sync_window_s is not None:     # (left out when not given: the params file's value stands)
         general['sync_window_s'] = float(sync_window_s)
+    if not use_imu:                   # (likewise)
+        general['use_imu'] = False
     # (image_transport: the rig replay hands the nodes has each camera's transport as the
     # bag holds it, which a params file's image_transport must not override)
     overrides = {'quarter': {'image_qos': 'reliable' if lockstep else 'sensor_data',
@@ -321,7 +335,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
               use_wheel=True, ack_timeout=120.0, start_offset=0.0, duration=None,
               migrate_every=0, rebalance=True, logger=print, record_topics=None,
               lockstep_depth=LOCKSTEP_DEPTH, debug_images=False, kill_worker_at=None,
-              sync_window_s=None, remote=None, remote_cpu=False) -> GraphRun:
+              sync_window_s=None, remote=None, remote_cpu=False, use_imu=True) -> GraphRun:
     """Coordinator + in-process player and recorder: one run of the graph over a bag.
     kill_worker_at (lockstep; the bench's crash row): SIGKILL the last worker once this many
     frames were acknowledged, as a crash would. remote: Coordinator keywords for remote
@@ -345,7 +359,8 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
     # The player's lockstep frames must be the general arbiter's groups.
     window = sync_window_from(params) if sync_window_s is None else float(sync_window_s)
     coordinator = Coordinator(rig, Path(rig_file).resolve(), Path(params).resolve(), workers=workers,
-                              overrides=graph_overrides(lockstep, use_wheel, debug_images, sync_window_s),
+                              overrides=graph_overrides(lockstep, use_wheel, debug_images, sync_window_s,
+                                                        use_imu),
                               log_dir=out / 'logs',
                               rebalance=rebalance, migrate_every=migrate_every, logger=logger,
                               **(remote or {}))
@@ -494,7 +509,7 @@ def run(args) -> int:
                   migrate_every=args.migrate_every, rebalance=not args.no_rebalance,
                   logger=lambda t: print(t, flush=True), lockstep_depth=depth,
                   debug_images=args.debug_images, sync_window_s=args.sync_window, remote=remote,
-                  kill_worker_at=args.kill_worker_at)
+                  kill_worker_at=args.kill_worker_at, use_imu=not args.no_imu)
     st = g.coordinator.stats
     print(f'coordinator: {st.migrations} migrations ({st.rebalances} rebalances), '
           f'{st.restarts} worker restarts'

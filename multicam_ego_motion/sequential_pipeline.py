@@ -30,6 +30,7 @@ from camera_pose_nodes.pose_estimate import PoseEstimate
 from camera_pose_nodes.quarter_estimator import QuarterEstimator, QuarterParams
 from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
 from multicam_ego_motion.errors import UserError
+from multicam_ego_motion.ros_plumbing.imu_messages import imu_gyro, imu_gyro_covariance
 from multicam_ego_motion.ros_plumbing.pose_messages import estimate_to_msg, msg_to_estimate, stamp_to_ns
 
 
@@ -64,6 +65,9 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
     wheel_topic = '/wheel/odom' if use_wheel and '/wheel/odom' in reader.topics else None
     if wheel_topic:
         topics.append(wheel_topic)
+    imu_topic = rig.imu.topic if fusion.wants_imu() and rig.imu.topic in reader.topics else None
+    if imu_topic:
+        topics.append(imu_topic)
     by_topic = {c.input_topic: c for c in present}
     info_topic = {c.camera_info_topic: c for c in present}
     estimators = {}   # camera name -> [QuarterEstimator x4]
@@ -151,6 +155,11 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
     for topic, msg, _ in reader.decoded(topics):
         if topic == wheel_topic:
             wheel.add(stamp_to_ns(msg.header.stamp), *twist_from_odometry(msg))
+            continue
+        if topic == imu_topic:
+            # (in log-time order: a frame is flushed when the next one's first image comes,
+            # by when its gyro samples are in, as the general arbiter waits for them)
+            fusion.add_imu(stamp_to_ns(msg.header.stamp), imu_gyro(msg), imu_gyro_covariance(msg))
             continue
         if topic in info_topic:
             cam = info_topic[topic]

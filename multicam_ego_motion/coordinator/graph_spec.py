@@ -97,6 +97,8 @@ def graph_topics(rig: Rig, topic_parameters: Iterable[str] = ()) -> List[str]:
         names += [replace(cam, transport=t).input_topic for t in TRANSPORTS]
         names += [cam.image_topic, cam.camera_info_topic, f'/{cam.name}/pose']
         names += [bearings_topic(cam.name, q) for q in range(1, QUARTERS + 1)]
+    if getattr(rig, 'imu', None) is not None:
+        names.append(rig.imu.topic)
     names += list(topic_parameters)
     return sorted({n for n in names if n.startswith('/')})
 

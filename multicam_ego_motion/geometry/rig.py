@@ -64,6 +64,21 @@ class CameraMount:
 
 
 @dataclass
+class ImuMount:
+    """Where an IMU sits: its frame (the sensor_msgs/Imu frame_id) in base_link."""
+    frame_id: str
+    translation: np.ndarray   # m, in base_link
+    rotation: np.ndarray      # 3x3, the IMU's axes expressed in base_link
+    topic: str = '/imu/data'
+
+    def to_dict(self):
+        q = Rotation.from_matrix(self.rotation).as_quat()
+        return {'frame_id': self.frame_id, 'topic': self.topic,
+                'translation': [round(float(v), 9) for v in self.translation],
+                'rotation_xyzw': [round(float(v), 12) for v in q]}
+
+
+@dataclass
 class Rig:
     cameras: List[CameraMount] = field(default_factory=list)
     base_frame: str = 'base_link'
@@ -83,6 +98,8 @@ class Rig:
     stereo_pairs: Tuple[Tuple[str, str], ...] = ()
     # False when the rig file names stereo_pairs (even an empty list): named pairs win
     detect_stereo: bool = True
+    # An IMU (sensor_msgs/Imu) whose gyro the general arbiter fuses; None: cameras only
+    imu: Optional[ImuMount] = None
 
     @property
     def metric_source(self) -> Optional[str]:
@@ -132,6 +149,8 @@ class Rig:
         if self.stereo_pairs or not self.detect_stereo:
             d['stereo_pairs'] = [list(p) for p in self.stereo_pairs]
         d['cameras'] = [c.to_dict() for c in self.cameras]
+        if self.imu is not None:
+            d['imu'] = self.imu.to_dict()
         return d
 
     def save(self, path):
@@ -147,6 +166,8 @@ class Rig:
                     '# transport (optional, per camera): raw (sensor_msgs/Image on image_topic,\n'
                     '# default) or compressed (CompressedImage on <image_topic>/compressed);\n'
                     '# mono16_bits (optional): significant bits of a mono16 camera (default 16).\n'
+                    '# imu (optional): frame_id, topic (sensor_msgs/Imu), translation and\n'
+                    '# rotation_xyzw of the IMU\'s frame in base_link.\n'
                     '# Intrinsics come from each camera\'s CameraInfo.\n')
             yaml.safe_dump(self.to_dict(), f, sort_keys=False)
 
@@ -218,7 +239,22 @@ def parse_rig(data: dict, source: str = 'rig') -> Rig:
     named = 'stereo_pairs' in data
     pairs = parse_stereo_pairs(data.get('stereo_pairs'), [c.name for c in cams], source) if named else ()
     return Rig(cameras=cams, base_frame=data.get('base_frame', 'base_link'), floor_z=floor_z,
-               floor_level=floor_level, stereo_pairs=pairs, detect_stereo=not named)
+               floor_level=floor_level, stereo_pairs=pairs, detect_stereo=not named,
+               imu=parse_imu(data.get('imu'), source))
+
+
+def parse_imu(value, source: str = 'rig') -> Optional[ImuMount]:
+    if value is None:
+        return None
+    where = f'{source}: imu'
+    if not isinstance(value, dict) or not isinstance(value.get('frame_id'), str):
+        raise UserError(f'{where}: expected a mapping with frame_id (the sensor_msgs/Imu frame), '
+                        f'translation and rotation_xyzw')
+    t = np.asarray(value.get('translation', [np.nan] * 3), dtype=float)
+    if t.shape != (3,) or not np.all(np.isfinite(t)):
+        raise UserError(f'{where}: translation must be 3 finite numbers')
+    R = rotation_from_quaternion(value.get('rotation_xyzw', [np.nan] * 4), where)
+    return ImuMount(value['frame_id'], t, R, str(value.get('topic', '/imu/data')))
 
 
 def parse_stereo_pairs(value, names, source: str = 'rig') -> Tuple[Tuple[str, str], ...]:

@@ -24,3 +24,15 @@ def image_qos(name: str) -> QoSProfile:
     if name == 'sensor_data':
         return SENSOR_IMAGES
     raise ValueError(f'image_qos must be "sensor_data" or "reliable", got {name!r}')
+
+
+# IMU samples (200 Hz and more): deep enough for a second of them while the general arbiter
+# fuses; best effort live (as drivers publish), reliable in lockstep replay (none may be lost:
+# the fusion must not depend on the transport).
+def imu_qos(name: str) -> QoSProfile:
+    if name not in ('reliable', 'sensor_data'):
+        raise ValueError(f'imu_qos must be "sensor_data" or "reliable", got {name!r}')
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=500,
+                      reliability=(ReliabilityPolicy.RELIABLE if name == 'reliable'
+                                   else ReliabilityPolicy.BEST_EFFORT),
+                      durability=DurabilityPolicy.VOLATILE)

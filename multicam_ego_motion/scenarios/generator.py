@@ -15,7 +15,8 @@ from tqdm import tqdm
 from multicam_ego_motion.bag.rig_bag_writer import IMAGE_CODECS, STAMP_EPOCH_NS, RigBagWriter
 from multicam_ego_motion.geometry.camera_intrinsics import CameraIntrinsics
 from multicam_ego_motion.errors import UserError
-from multicam_ego_motion.geometry.rig import MAX_CAMERAS, CameraMount, Rig, optical_rotation, paper_rig
+from multicam_ego_motion.geometry.rig import (MAX_CAMERAS, CameraMount, ImuMount, Rig, optical_rotation,
+                                             paper_rig)
 from multicam_ego_motion.scenarios.imu import (IMU_FRAME, IMU_ROTATION, IMU_TOPIC, IMU_TRANSLATION,
                                               ImuNoise, simulate_imu)
 from multicam_ego_motion.scenarios.photometry import LightingEffects
@@ -239,6 +240,8 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
     wx, wy, wyaw = wheel.dead_reckon(times, wheel_v, wheel_w)
     wheel_index = {int(s): i for i, s in enumerate(wheel_stamps)}
     imu = simulate_imu(trajectory, imu_rate, np.random.default_rng(imu_seed)) if imu_rate > 0 else None
+    if imu is not None:
+        rig = replace(rig, imu=ImuMount(IMU_FRAME, np.array(IMU_TRANSLATION), IMU_ROTATION, IMU_TOPIC))
     imu_stamps = (STAMP_EPOCH_NS + np.round(imu.times * 1e9).astype(np.int64)) if imu is not None else []
     imu_variances = ImuNoise().sample_variances(imu_rate) if imu is not None else None
     imu_next = 0
