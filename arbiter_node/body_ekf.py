@@ -201,9 +201,12 @@ class BodyEKF:
         y = se3.pose_error(T_meas, self.T)
         return y, mahalanobis2(y, self.kf.P[:6, :6] + cov)
 
-    def update_pose(self, T_meas: np.ndarray, cov: np.ndarray, gate_chi2: float = float('inf')) -> Tuple[bool, float]:
+    def update_pose(self, T_meas: np.ndarray, cov: np.ndarray, gate_chi2: float = float('inf'),
+                    learn_bias: bool = True) -> Tuple[bool, float]:
         """6-dof pose measurement (base_link in odom, se3-convention covariance).
-        Returns (accepted, squared Mahalanobis distance of the innovation)."""
+        Returns (accepted, squared Mahalanobis distance of the innovation). learn_bias=False:
+        the gyro bias is a consider state for this update (Schmidt-Kalman: its gain is zero,
+        the covariances stay consistent), for measurements not yet trusted to tell it."""
         if not (np.all(np.isfinite(T_meas)) and np.all(np.isfinite(cov))):
             return False, float('inf')
         cov = condition_covariance(cov, max_eig=MAX_VARIANCE)
@@ -211,6 +214,8 @@ class BodyEKF:
         if not np.isfinite(d2) or d2 > gate_chi2:
             return False, d2
         H = np.hstack([np.eye(6), np.zeros((6, self.dim - 6))])
+        if self.has_gyro_bias and not learn_bias:
+            return self._schmidt_update(y.reshape(6, 1), H, cov, BIAS), d2
         # z = H x + y makes filterpy's residual z - H x equal the se3 innovation
         z = H @ self.kf.x + y.reshape(6, 1)
         return self._update(z, H, cov), d2
@@ -254,6 +259,23 @@ class BodyEKF:
         if d2 > gate_chi2:
             return False, d2
         return self._update(z, H, cov), d2
+
+    def _schmidt_update(self, y, H, Rm, frozen: slice) -> bool:
+        """Kalman update with the `frozen` states' gain set to zero (Joseph form, which
+        holds for any gain): they keep their estimate, and their covariance with the others
+        follows what the update did to those."""
+        snap = self._snapshot()
+        P = self.kf.P
+        S = H @ P @ H.T + Rm
+        try:
+            K = np.linalg.solve(S, H @ P).T
+        except np.linalg.LinAlgError:
+            return False
+        K[frozen, :] = 0.0
+        self.kf.x = self.kf.x + K @ y
+        A = np.eye(self.dim) - K @ H
+        self.kf.P = A @ P @ A.T + K @ Rm @ K.T
+        return self._finish(snap)
 
     def _update(self, z, H, Rm) -> bool:
         snap = self._snapshot()

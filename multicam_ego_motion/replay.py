@@ -12,7 +12,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict
+from typing import Dict, Optional
 
 from multicam_ego_motion import interrupt
 from multicam_ego_motion.errors import UserError
@@ -31,7 +31,9 @@ def configure_parser(p):
     p.add_argument('--ground-truth-topic', default='/ground_truth/odom')
     p.add_argument('--ack-timeout', type=float, default=120.0, help='lockstep: longest wait per frame [s]')
     p.add_argument('--no-wheel', action='store_true', help='do not fuse /wheel/odom')
-    p.add_argument('--no-imu', action='store_true', help='do not fuse the rig\'s IMU (/imu/data)')
+    imu = p.add_mutually_exclusive_group()
+    imu.add_argument('--imu', action='store_true', help='fuse the rig\'s IMU (/imu/data; the general arbiter\'s use_imu)')
+    imu.add_argument('--no-imu', action='store_true', help='do not fuse it (whatever the params file says)')
     p.add_argument('--start-offset', type=float, default=0.0, help='skip this much of the bag [s]')
     p.add_argument('--duration', type=float, help='play only this much of the bag [s]')
     p.add_argument('--no-rebalance', action='store_true', help='keep the start allocation')
@@ -163,7 +165,7 @@ LOCKSTEP_DEPTH = 2
 
 
 def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False,
-                    sync_window_s=None, use_imu: bool = True):
+                    sync_window_s=None, use_imu: Optional[bool] = None):
     # Lockstep replay waits for everything (deterministic); rate mode must keep going.
     wait = 60.0 if lockstep else 0.3
     general = {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2,
@@ -179,8 +181,8 @@ def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False,
         general['odom_rate_hz'] = 0.0     # the player waits for each fused stamp's /odom
     if sync_window_s is not None:     # (left out when not given: the params file's value stands)
         general['sync_window_s'] = float(sync_window_s)
-    if not use_imu:                   # (likewise)
-        general['use_imu'] = False
+    if use_imu is not None:           # (likewise)
+        general['use_imu'] = bool(use_imu)
     # (image_transport: the rig replay hands the nodes has each camera's transport as the
     # bag holds it, which a params file's image_transport must not override)
     overrides = {'quarter': {'image_qos': 'reliable' if lockstep else 'sensor_data',
@@ -335,7 +337,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
               use_wheel=True, ack_timeout=120.0, start_offset=0.0, duration=None,
               migrate_every=0, rebalance=True, logger=print, record_topics=None,
               lockstep_depth=LOCKSTEP_DEPTH, debug_images=False, kill_worker_at=None,
-              sync_window_s=None, remote=None, remote_cpu=False, use_imu=True) -> GraphRun:
+              sync_window_s=None, remote=None, remote_cpu=False, use_imu=None) -> GraphRun:
     """Coordinator + in-process player and recorder: one run of the graph over a bag.
     kill_worker_at (lockstep; the bench's crash row): SIGKILL the last worker once this many
     frames were acknowledged, as a crash would. remote: Coordinator keywords for remote
@@ -509,7 +511,8 @@ def run(args) -> int:
                   migrate_every=args.migrate_every, rebalance=not args.no_rebalance,
                   logger=lambda t: print(t, flush=True), lockstep_depth=depth,
                   debug_images=args.debug_images, sync_window_s=args.sync_window, remote=remote,
-                  kill_worker_at=args.kill_worker_at, use_imu=not args.no_imu)
+                  kill_worker_at=args.kill_worker_at,
+                  use_imu=True if args.imu else (False if args.no_imu else None))
     st = g.coordinator.stats
     print(f'coordinator: {st.migrations} migrations ({st.rebalances} rebalances), '
           f'{st.restarts} worker restarts'

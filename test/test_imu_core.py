@@ -100,3 +100,25 @@ def test_the_gyro_carries_the_heading_through_a_spin_the_cameras_do_not_see():
     assert abs(err_without) > 45 and plain.gyro_bias is None
     with pytest.raises(ValueError, match='no gyro bias'):
         plain.update_gyro(np.zeros(3), np.eye(3))
+
+
+def test_a_fix_not_trusted_to_tell_the_bias_leaves_it_alone():
+    """learn_bias=False (the cameras' first seconds, gyro_bias_settle_s): the fix moves the
+    pose as before, the bias keeps its estimate and its variance, the covariance stays a
+    covariance."""
+    ekf = BodyEKF(gyro_bias=True)
+    ekf.reinitialize(np.eye(4), np.eye(6) * 1e-6)
+    for _ in range(5):
+        ekf.predict(0.1, (np.array([0.0, 0.0, 0.2]), np.eye(3) * 1e-7))
+    b, Pbb = ekf.gyro_bias, ekf.gyro_bias_covariance
+    fix = se3.make_T(se3.rotvec_to_R([0.0, 0.0, 0.08]), [0.01, 0.0, 0.0])   # 0.02 rad off
+    frozen = BodyEKF(gyro_bias=True)
+    frozen.kf.x, frozen.kf.P, frozen.R_nom = ekf.kf.x.copy(), ekf.kf.P.copy(), ekf.R_nom.copy()
+    ok, _ = frozen.update_pose(fix, np.eye(6) * 1e-6, learn_bias=False)
+    assert ok and np.array_equal(frozen.gyro_bias, b)
+    np.testing.assert_allclose(frozen.gyro_bias_covariance, Pbb, rtol=1e-12)
+    assert np.linalg.eigvalsh(frozen.kf.P).min() > 0
+    yaw = lambda T: math.atan2(T[1, 0], T[0, 0])
+    assert abs(yaw(frozen.T) - 0.08) < 1e-3           # the pose follows the fix
+    ok, _ = ekf.update_pose(fix, np.eye(6) * 1e-6)     # a trusted fix tells the bias
+    assert ok and abs(ekf.gyro_bias[2] - b[2]) > 1e-3

@@ -5,7 +5,7 @@ Bags are generated into DIR on first use and reused (deterministic for the seed)
 through the sequential pipeline, which gives the lockstep graph's odometry bit for bit, and
 is scored against its ground truth. Prints one table (markdown) with the mean and worst final
 drift, and writes it to OUT/matrix.md. `--params` scores another params file, `--set
-key=value` a single quarter-parameter change.
+key=value` a single quarter-parameter change, `--imu-rate 200` the same scenes with an IMU.
 """
 from pathlib import Path
 
@@ -27,15 +27,19 @@ def configure_parser(p):
                    help='override a quarter parameter (repeatable)')
     p.add_argument('--seeds', type=int, nargs='+', default=list(SEEDS))
     p.add_argument('--scenarios', nargs='+', default=list(SCENARIOS), choices=SCENARIOS)
+    p.add_argument('--imu-rate', type=float, default=0.0, metavar='HZ',
+                   help='the bags with an IMU at this rate (generate --imu-rate; their own folder '
+                        'names), fused by the general arbiter; default 0: without')
 
 
-def ensure_bag(folder: Path, scenario: str, seed: int) -> Path:
-    bag = folder / f'{scenario}_s{seed}'
+def ensure_bag(folder: Path, scenario: str, seed: int, imu_rate: float = 0.0) -> Path:
+    # (the same scene with an IMU: the images and the wheel are the bag without one's)
+    bag = folder / (f'{scenario}_s{seed}' + (f'_imu{imu_rate:g}' if imu_rate > 0 else ''))
     if not (bag / 'metadata.yaml').exists():
         from multicam_ego_motion.scenarios.generator import generate
         s = BAG_SETTINGS
         generate(scenario, str(bag), seed, s['duration'], s['rate'], s['width'], s['height'],
-                 s['fx'], 0.0, 4, None, 'zstd')
+                 s['fx'], 0.0, 4, None, 'zstd', imu_rate=imu_rate)
     return bag
 
 
@@ -73,7 +77,7 @@ def run(args) -> int:
     cells = [(sc, seed) for seed in args.seeds for sc in args.scenarios]
     results = {}
     for scenario, seed in tqdm(cells, desc='matrix', unit='run'):
-        bag = ensure_bag(folder, scenario, seed)
+        bag = ensure_bag(folder, scenario, seed, args.imu_rate)
         rig, _ = resolve_rig(Rosbag2Reader(bag), None)
         c0 = time.process_time()
         res = run_sequential(bag, rig, qp, fp)
@@ -88,7 +92,8 @@ def run(args) -> int:
     worst = max(results, key=lambda k: results[k]['final_drift_pct'])
     lines += ['', f'mean final drift {sum(drifts) / len(drifts):.3f} %, worst {worst} '
                   f'{results[worst]["final_drift_pct"]:.3f} %'
-                  + (f'; overrides {parse_overrides(args.set)}' if args.set else '')]
+                  + (f'; overrides {parse_overrides(args.set)}' if args.set else '')
+                  + (f'; with an IMU at {args.imu_rate:g} Hz' if args.imu_rate > 0 else '')]
     text = '\n'.join(lines) + '\n'
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
