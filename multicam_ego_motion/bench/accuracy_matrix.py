@@ -72,6 +72,8 @@ def run(args) -> int:
     params_file = Path(args.params) if args.params else default_params()
     qp = {**quarter_params_from(params_file), **parse_overrides(args.set)}
     fp = fusion_params_from(params_file)
+    if args.imu_rate > 0:
+        fp['use_imu'] = True          # (the IMU is opt-in: the bags have one to fuse)
     folder = Path(args.bags)
     folder.mkdir(parents=True, exist_ok=True)
     cells = [(sc, seed) for seed in args.seeds for sc in args.scenarios]
