@@ -107,7 +107,7 @@ class GeneralArbiterNode(Node):
         self.take_local(())
         self.held = []                       # (sync group, since): waiting for its wheel reading
         self.imu_sub = None
-        self.imu_error = None                # the last problem said of the IMU (said once)
+        self.imu_error = None                # the last problem said of the IMU (not said again)
         if self.fusion.wants_imu():
             self.imu_sub = self.create_subscription(Imu, self.rig.imu.topic, self.on_imu,
                                                     imu_qos(p['imu_qos']))

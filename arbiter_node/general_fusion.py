@@ -57,7 +57,7 @@ PARAMETERS = {
     'lost_timeout_s': (2.0, 'without camera updates or wheel prior for this long, the state is lost', 0.1, 600.0),
     'arc_integration': (True, 'EKF prediction moves along the arc of the twist (constant body twist), not along the heading at the start of the step', None, None),
     'wheel_planar_only': (True, 'use only vx, vy, wz of the wheel twist (a wheeled base measures nothing else)', None, None),
-    'use_imu': (False, 'fuse the gyro of the rig\'s IMU (rig file `imu`, or its frame in /tf_static) when one publishes: the rotation between frames follows it, less its bias, which the EKF estimates. Off by default: it holds spins without wheel (heading 17 -> 0.7 deg) but the accuracy matrix with the wheel is worse with it (mean final drift 0.56 against 0.32 %: docs/fusion.md)', None, None),
+    'use_imu': (False, 'fuse the gyro of the rig\'s IMU (rig file `imu`, or its frame in /tf_static) when one publishes: the rotation between frames follows it, less its bias, which the EKF estimates. Off by default: it holds spins without wheel (heading 17 -> 1.3 deg) but the accuracy matrix with the wheel is worse with it (mean final drift 0.56 against 0.32 %: docs/fusion.md)', None, None),
     'imu_gyro_variance': (1e-5, 'a gyro sample\'s variance per axis ((rad/s)^2) when its message has no covariance', 1e-12, 1.0),
     'gyro_bias_std': (0.01, 'the gyro bias\'s prior std (rad/s; MEMS: a few tenths of a degree per second)', 1e-6, 1.0),
     'gyro_bias_walk': (1e-4, 'the gyro bias\'s random walk (rad/s/sqrt(s))', 1e-9, 1.0),

@@ -95,3 +95,27 @@ def test_generated_bag_has_the_imu_as_a_driver_publishes_it_and_nothing_else_cha
     rest0 = [(topic, t, bytes(m.data) if hasattr(m, 'data') else repr(m)) for topic, t, m in msgs0
              if topic != '/tf_static']
     assert rest == rest0
+
+
+def test_the_rig_file_keeps_the_imu_and_refuses_a_bad_one(tmp_path):
+    """The generated rig file names the IMU as the bag places it; a rig file whose imu is
+    not a mount is refused, naming the problem."""
+    import yaml
+
+    from multicam_ego_motion.errors import UserError
+    from multicam_ego_motion.geometry.rig import load_rig
+    generate(out=tmp_path / 'bag', scenario='loop', seed=5, duration=1.0, rate=5.0, width=160,
+             height=120, progress=False, imu_rate=RATE)
+    rig = load_rig(tmp_path / 'bag' / 'rig.yaml')
+    assert rig.imu.frame_id == IMU_FRAME and rig.imu.topic == IMU_TOPIC
+    np.testing.assert_allclose(rig.imu.translation, IMU_TRANSLATION)
+    np.testing.assert_allclose(rig.imu.rotation, IMU_ROTATION, atol=1e-9)
+    data = yaml.safe_load((tmp_path / 'bag' / 'rig.yaml').read_text())
+    for imu, words in (({'frame_id': 'imu_link', 'translation': [0, 0], 'rotation_xyzw': [0, 0, 0, 1]},
+                        'translation must be 3 finite numbers'),
+                       ({'frame_id': 'imu_link', 'translation': [0, 0, 0], 'rotation_xyzw': [0, 0, 0, 2]},
+                        'not a unit quaternion'),
+                       ('imu_link', 'expected a mapping with frame_id')):
+        (tmp_path / 'bad.yaml').write_text(yaml.safe_dump({**data, 'imu': imu}))
+        with pytest.raises(UserError, match=words):
+            load_rig(tmp_path / 'bad.yaml')
