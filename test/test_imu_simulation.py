@@ -7,9 +7,9 @@ import pytest
 from conftest import read_bag
 
 from multicam_ego_motion.scenarios.generator import generate
-from multicam_ego_motion.scenarios.imu import (GRAVITY, IMU_FRAME, IMU_ROTATION, IMU_TOPIC,
-                                              IMU_TRANSLATION, NOISELESS, ImuNoise, simulate_imu,
-                                              true_motion)
+from multicam_ego_motion.geometry.rig import IMU_TOPIC
+from multicam_ego_motion.scenarios.imu import (GRAVITY, IMU_FRAME, IMU_ROTATION, IMU_TRANSLATION,
+                                              NOISELESS, ImuNoise, simulate_imu, true_motion)
 from multicam_ego_motion.scenarios.trajectories import SCENARIOS
 
 RATE = 200.0

@@ -7,9 +7,8 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from multicam_ego_motion.geometry.rig import ImuMount, Rig, rotation_from_quaternion
-
-IMU_TOPIC = '/imu/data'
+from multicam_ego_motion.bag.rig_from_tf import mount, static_transforms
+from multicam_ego_motion.geometry.rig import IMU_TOPIC, ImuMount, Rig
 
 
 def imu_from_bag(reader, base_frame: str = 'base_link',
@@ -26,13 +25,9 @@ def imu_from_bag(reader, base_frame: str = 'base_link',
         return None, None
     if frame in ('', base_frame):
         return ImuMount(base_frame, np.zeros(3), np.eye(3), topic), None
-    if '/tf_static' in reader.topics:
-        for _, msg, _ in reader.decoded(['/tf_static']):
-            for t in msg.transforms:
-                if t.child_frame_id == frame and t.header.frame_id == base_frame:
-                    tr, rq = t.transform.translation, t.transform.rotation
-                    R = rotation_from_quaternion([rq.x, rq.y, rq.z, rq.w], f'/tf_static {frame}')
-                    return ImuMount(frame, np.array([tr.x, tr.y, tr.z]), R, topic), None
+    t = static_transforms(reader).get(frame)
+    if t is not None and t.header.frame_id == base_frame:
+        return ImuMount(frame, *mount(t), topic), None
     return None, (f'{topic} is in frame {frame!r}, which /tf_static does not place in {base_frame}: '
                   'the IMU is not used (give it as `imu` in the rig file)')
 

@@ -76,15 +76,15 @@ class RigBagWriter:
         self.bag.write_serialized(topic, typename, bytes(_STORE.serialize_cdr(msg, typename)),
                                   time_ns)
 
-    def write_static_transforms(self, time_ns: int, footprint: bool = False, extra=()):
-        """base_link -> each camera's optical frame; with `footprint` also base_link ->
-        base_footprint on the rig's floor (REP-120), from which a rig built from /tf_static
-        takes its floor_z; `extra`: more (child frame, translation, rotation) of base_link
-        (an IMU's frame)."""
+    def write_static_transforms(self, time_ns: int, footprint: bool = False):
+        """base_link -> each camera's optical frame and the rig's IMU's frame; with
+        `footprint` also base_link -> base_footprint on the rig's floor (REP-120), from which
+        a rig built from /tf_static takes its floor_z."""
         frames = [(cam.frame_id, cam.translation, cam.rotation) for cam in self.rig.cameras]
         if footprint and self.rig.floor_z is not None:
             frames.append(('base_footprint', (0.0, 0.0, self.rig.floor_z), np.eye(3)))
-        frames += list(extra)
+        if self.rig.imu is not None:
+            frames.append((self.rig.imu.frame_id, self.rig.imu.translation, self.rig.imu.rotation))
         transforms = [_T['geometry_msgs/msg/TransformStamped'](
             header=header(time_ns, self.rig.base_frame), child_frame_id=child,
             transform=_T['geometry_msgs/msg/Transform'](

@@ -13,10 +13,7 @@ def rig_from_bag(reader, base_frame: str = 'base_link') -> Rig:
     if '/tf_static' not in reader.topics:
         raise UserError(f'bag {reader.path} has no /tf_static and no rig file was given: '
                         'cannot know where the cameras are (pass --rig RIG.yaml)')
-    transforms = {}
-    for _, msg, _ in reader.decoded(['/tf_static']):
-        for t in msg.transforms:
-            transforms[t.child_frame_id] = t
+    transforms = static_transforms(reader)
     cams = []
     for topic in sorted(reader.topics):
         transport = 'raw'
@@ -30,14 +27,28 @@ def rig_from_bag(reader, base_frame: str = 'base_link') -> Rig:
         if t is None or t.header.frame_id != base_frame:
             raise UserError(f'bag {reader.path}: /tf_static has no {base_frame} -> {frame} '
                             f'for camera topic {topic}')
-        tr, rq = t.transform.translation, t.transform.rotation
-        cams.append(CameraMount(name, topic, f'/{name}/camera_info', frame,
-                                np.array([tr.x, tr.y, tr.z]),
-                                rotation_from_quaternion([rq.x, rq.y, rq.z, rq.w], f'/tf_static {frame}'),
+        cams.append(CameraMount(name, topic, f'/{name}/camera_info', frame, *mount(t),
                                 transport=transport))
     if not cams:
         raise UserError(f'bag {reader.path} has no */image_raw (nor */image_raw/compressed) topic')
     return Rig(cameras=cams, base_frame=base_frame, floor_z=footprint_z(transforms, base_frame))
+
+
+def static_transforms(reader) -> dict:
+    """{child frame: TransformStamped} of the bag's /tf_static (none without it)."""
+    transforms = {}
+    if '/tf_static' in reader.topics:
+        for _, msg, _ in reader.decoded(['/tf_static']):
+            for t in msg.transforms:
+                transforms[t.child_frame_id] = t
+    return transforms
+
+
+def mount(t):
+    """(translation, 3x3 rotation) of a TransformStamped: the child frame in the parent."""
+    tr, rq = t.transform.translation, t.transform.rotation
+    return (np.array([tr.x, tr.y, tr.z]),
+            rotation_from_quaternion([rq.x, rq.y, rq.z, rq.w], f'/tf_static {t.child_frame_id}'))
 
 
 def footprint_z(transforms, base_frame: str = 'base_link'):

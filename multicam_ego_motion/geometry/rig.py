@@ -18,6 +18,7 @@ MAX_CAMERAS = 8
 # image_transport's transports this graph reads: `raw` (sensor_msgs/Image on the image topic)
 # or `compressed` (sensor_msgs/CompressedImage, JPEG or PNG, on <image topic>/compressed)
 TRANSPORTS = {'raw': 'sensor_msgs/msg/Image', 'compressed': 'sensor_msgs/msg/CompressedImage'}
+IMU_TOPIC = '/imu/data'      # an IMU's sensor_msgs/Imu unless the rig file names another
 
 
 @dataclass
@@ -69,7 +70,7 @@ class ImuMount:
     frame_id: str
     translation: np.ndarray   # m, in base_link
     rotation: np.ndarray      # 3x3, the IMU's axes expressed in base_link
-    topic: str = '/imu/data'
+    topic: str = IMU_TOPIC
 
     def to_dict(self):
         q = Rotation.from_matrix(self.rotation).as_quat()
@@ -254,7 +255,7 @@ def parse_imu(value, source: str = 'rig') -> Optional[ImuMount]:
     if t.shape != (3,) or not np.all(np.isfinite(t)):
         raise UserError(f'{where}: translation must be 3 finite numbers')
     R = rotation_from_quaternion(value.get('rotation_xyzw', [np.nan] * 4), where)
-    return ImuMount(value['frame_id'], t, R, str(value.get('topic', '/imu/data')))
+    return ImuMount(value['frame_id'], t, R, str(value.get('topic', IMU_TOPIC)))
 
 
 def parse_stereo_pairs(value, names, source: str = 'rig') -> Tuple[Tuple[str, str], ...]:

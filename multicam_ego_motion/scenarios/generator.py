@@ -17,8 +17,7 @@ from multicam_ego_motion.geometry.camera_intrinsics import CameraIntrinsics
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.geometry.rig import (MAX_CAMERAS, CameraMount, ImuMount, Rig, optical_rotation,
                                              paper_rig)
-from multicam_ego_motion.scenarios.imu import (IMU_FRAME, IMU_ROTATION, IMU_TOPIC, IMU_TRANSLATION,
-                                              ImuNoise, simulate_imu)
+from multicam_ego_motion.scenarios.imu import IMU_FRAME, IMU_ROTATION, IMU_TRANSLATION, ImuNoise, simulate_imu
 from multicam_ego_motion.scenarios.photometry import LightingEffects
 from multicam_ego_motion.scenarios.renderer import CameraRenderer
 from multicam_ego_motion.scenarios.scene import CAMERA_HEIGHT, scene_for
@@ -241,7 +240,7 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
     wheel_index = {int(s): i for i, s in enumerate(wheel_stamps)}
     imu = simulate_imu(trajectory, imu_rate, np.random.default_rng(imu_seed)) if imu_rate > 0 else None
     if imu is not None:
-        rig = replace(rig, imu=ImuMount(IMU_FRAME, np.array(IMU_TRANSLATION), IMU_ROTATION, IMU_TOPIC))
+        rig = replace(rig, imu=ImuMount(IMU_FRAME, np.array(IMU_TRANSLATION), IMU_ROTATION))
     imu_stamps = (STAMP_EPOCH_NS + np.round(imu.times * 1e9).astype(np.int64)) if imu is not None else []
     imu_variances = ImuNoise().sample_variances(imu_rate) if imu is not None else None
     imu_next = 0
@@ -250,7 +249,7 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
         # in log-time order with the frames: every sample up to and including `stamp`
         nonlocal imu_next
         while imu_next < len(imu_stamps) and imu_stamps[imu_next] <= stamp:
-            bag.write_imu(IMU_TOPIC, int(imu_stamps[imu_next]), IMU_FRAME, imu.gyro[imu_next],
+            bag.write_imu(rig.imu.topic, int(imu_stamps[imu_next]), rig.imu.frame_id, imu.gyro[imu_next],
                           imu.accel[imu_next], *imu_variances)
             imu_next += 1
 
@@ -264,8 +263,7 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
     images_written = 0
     with RigBagWriter(out, rig, {c.name: intr for c in rig.cameras}, compression,
                       image_codec or 'jpeg', jpeg_quality) as bag:
-        bag.write_static_transforms(int(stamps[0]), extra=[(IMU_FRAME, IMU_TRANSLATION, IMU_ROTATION)]
-                                    if imu is not None else ())
+        bag.write_static_transforms(int(stamps[0]))
         for i in tqdm(range(len(stamps)), unit='frame', desc=f'{scenario}', disable=not progress):
             stamp = int(stamps[i])
             write_imu_until(bag, stamp)

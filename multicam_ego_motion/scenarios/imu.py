@@ -22,7 +22,6 @@ from scipy.spatial.transform import Rotation
 
 GRAVITY = 9.80665               # m/s^2
 IMU_FRAME = 'imu_link'
-IMU_TOPIC = '/imu/data'
 # Where the generated IMU sits: off base_link's origin and turned (a board in the robot's
 # body), so that a consumer that took the IMU frame for base_link would fail.
 IMU_TRANSLATION = (0.12, -0.05, 0.25)                 # m, in base_link
