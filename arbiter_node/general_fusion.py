@@ -69,6 +69,8 @@ PARAMETERS = {
     'imu_refused_fraction': (0.05, 'IMU health: more than this fraction of the last imu_refused_window samples refused (out of order, repeated or not finite) is a fault; fewer is jitter', 0.0, 1.0),
     'imu_refused_window': (100, 'IMU health: ... of this many samples', 1, 1000000),
     'imu_gyro_bias_max': (0.05, 'IMU health: the filter\'s gyro-bias estimate beyond this (rad/s, its norm) is a drifting bias (a MEMS gyro\'s turn-on bias is a few tenths of a degree per second, 0.01 rad/s); it holds until a reset, the bias frozen', 1e-4, 10.0),
+    'imu_gyro_disagreement': (0.03, 'IMU health: the cameras\' fixes turning away from the gyro\'s prediction by more than this on average (rad/s, over imu_disagreement_window_s) is a drifting bias (the innovation test)', 1e-4, 10.0),
+    'imu_disagreement_window_s': (1.0, 'IMU health: ... over this long (s)', 0.1, 600.0),
     'imu_recover_s': (2.0, 'IMU health: after a problem, the gyro is used again once none was seen for this long (s)', 0.0, 3600.0),
     'gyro_bias_settle_s': (3.0, 'the cameras\' fixes tell the gyro bias only from this long after the first one (while their maps form they are off by tenths of a degree between frames, which the filter took for a 4 mrad/s bias)', 0.0, 600.0),
     'planar_motion': (True, 'the base moves on the rig\'s level floor (rig floor_z, not with floor_level false; robot_localization calls it two_d_mode): every frame measures its vz, wx, wy as 0', None, None),
@@ -163,7 +165,8 @@ class GeneralFusion:
             gyro_saturation=p['imu_gyro_saturation'], saturation_repeats=p['imu_saturation_repeats'],
             stuck_samples=p['imu_stuck_samples'], silent_s=p['imu_silent_s'],
             refused_fraction=p['imu_refused_fraction'], refused_window=p['imu_refused_window'],
-            gyro_bias_max=p['imu_gyro_bias_max'], recover_s=p['imu_recover_s'])) if self.imu is not None else None
+            gyro_bias_max=p['imu_gyro_bias_max'], gyro_disagreement=p['imu_gyro_disagreement'],
+            disagreement_window_s=p['imu_disagreement_window_s'], recover_s=p['imu_recover_s'])) if self.imu is not None else None
         self.gyro_used = False         # this frame step follows the gyro (imu_health says it may)
         self.last_stamp_ns: Optional[int] = None
         self.wheel_used_ns: Optional[int] = None       # the stamp of the last wheel reading applied
@@ -318,6 +321,7 @@ class GeneralFusion:
             self._predict(wheel_stamp_ns, stamp_ns)
         elif self.last_stamp_ns is not None:
             self._predict(self.last_stamp_ns, stamp_ns)   # dt <= 0 is a no-op
+        step_s = 0.0 if self.last_stamp_ns is None else (stamp_ns - self.last_stamp_ns) * 1e-9
         self.last_stamp_ns = stamp_ns if self.last_stamp_ns is None else max(stamp_ns, self.last_stamp_ns)
         T_prev = self.last_T
 
@@ -358,10 +362,16 @@ class GeneralFusion:
                 self.ekf.reinitialize(T_f, cov_f, twist_cov=twist_cov)
                 camera_update, d2 = True, 0.0
             else:
+                # the innovation test of imu_health: where the fix turns against the gyro
+                residual = (self.ekf.T[:3, :3].T @ self.ekf.pose_innovation(T_f, cov_f)[0][3:]
+                            if self.gyro_used and self._cameras_settled(stamp_ns) and step_s > 0 else None)
                 # (the gyro out: its bias frozen, as it no longer moves the pose)
                 camera_update, d2 = self.ekf.update_pose(T_f, cov_f, p['ekf_gate_chi2'],
                                                          learn_bias=self._cameras_settled(stamp_ns)
                                                          and self.gyro_used)
+                if camera_update and residual is not None:
+                    # (fixes the gate refuses are the cameras' outliers, not the gyro's)
+                    self.imu_health.camera_residual(stamp_ns, residual, step_s)
                 if not camera_update:
                     self.rejections += 1
                     if self.rejections >= p['max_consecutive_rejections']:

@@ -13,11 +13,13 @@ Problems, each with a name the diagnostics say:
 - out_of_order / not_finite: more than `refused_fraction` of the last `refused_window`
   samples refused by the ImuBuffer (fewer is jitter, tolerated);
 - bias_drift: the filter's gyro-bias estimate beyond `gyro_bias_max` (a MEMS gyro's
-  turn-on bias is a few tenths of a degree per second; more is a gyro gone wrong).
+  turn-on bias is a few tenths of a degree per second; more is a gyro gone wrong), or the
+  cameras' fixes turning away from the gyro's prediction by more than `gyro_disagreement`
+  on average over `disagreement_window_s` (the innovation test: a bias running away faster
+  than the filter's bias walk lets it follow).
 
 Hysteresis: after any problem the gyro stays out until none was seen for `recover_s`. A
-bias_drift holds itself: with the gyro out its bias estimate is frozen, so it stays out
-until the fusion is reset.
+bias_drift holds until the fusion is reset: with the gyro out nothing tells it again.
 """
 from collections import deque
 from dataclasses import dataclass
@@ -37,6 +39,8 @@ class ImuHealthLimits:
     refused_fraction: float = 0.05
     refused_window: int = 100            # samples
     gyro_bias_max: float = 0.05          # rad/s
+    gyro_disagreement: float = 0.03      # rad/s
+    disagreement_window_s: float = 1.0
     recover_s: float = 2.0
 
 
@@ -65,6 +69,8 @@ class ImuHealth:
         self._heard = deque()                # stamps heard after the last check's
         self._newest: Optional[int] = None   # the newest stamp heard up to the last check
         self._stamp = 0                      # the sample's being looked at
+        self._residuals = deque()            # (stamp, rotation error, step s) of camera fixes
+        self.disagreement = 0.0              # rad/s: their mean over the window
 
     # ------------------------------------------------------------------ per sample
     def sample(self, stamp_ns: int, frame_id: str, gyro, refused: Optional[str] = None):
@@ -123,6 +129,12 @@ class ImuHealth:
             self._seen.append((self._stamp, problem, detail))
 
     # ------------------------------------------------------------------ per frame step
+    def camera_residual(self, stamp_ns: int, rotation_error, step_s: float):
+        """A camera fix's rotation against the filter's prediction with the gyro (rad,
+        base_link), the step since the frame before (s)."""
+        if step_s > 0 and np.all(np.isfinite(rotation_error)):
+            self._residuals.append((int(stamp_ns), np.asarray(rotation_error, float), float(step_s)))
+
     def check(self, stamp_ns: int, gyro_bias: Optional[np.ndarray] = None) -> bool:
         """At a frame's stamp (its samples up to it in): whether the gyro may be used.
         gyro_bias: the filter's bias estimate (rad/s), while the gyro is used."""
@@ -151,6 +163,19 @@ class ImuHealth:
             b = float(np.linalg.norm(gyro_bias))
             if b > lim.gyro_bias_max:
                 seen = ('bias_drift', f'gyro bias estimate {b:.3f} rad/s (limit {lim.gyro_bias_max:g})')
+        window_ns = int(lim.disagreement_window_s * 1e9)
+        while self._residuals and self._residuals[0][0] <= stamp_ns - window_ns:
+            self._residuals.popleft()
+        span = sum(r[2] for r in self._residuals)
+        self.disagreement = (float(np.linalg.norm(sum(r[1] for r in self._residuals))) / span
+                             if span >= 0.5 * lim.disagreement_window_s else 0.0)
+        if seen is None and self.disagreement > lim.gyro_disagreement:
+            seen = ('bias_drift', f'the cameras turn {self.disagreement:.3f} rad/s away from the gyro '
+                                  f'(limit {lim.gyro_disagreement:g})')
+        if seen is None and self.problem == 'bias_drift':
+            seen = (self.problem, self.detail)     # held: with the gyro out, nothing tells it again
+        if seen is not None and seen[0] != 'bias_drift':
+            self._residuals.clear()
         if seen is not None:
             if self.problem is None:
                 self.faults += 1
@@ -200,5 +225,6 @@ class ImuHealth:
         values = {'imu_state': state, 'imu_problem': self.problem or '',
                   'imu_last_problem': self.last_problem or '', 'imu_gyro_used': state == 'ok',
                   'imu_samples': self.received, 'imu_refused': self.refused,
-                  'imu_refused_reason': self.reason or '', 'imu_faults': self.faults}
+                  'imu_refused_reason': self.reason or '', 'imu_faults': self.faults,
+                  'imu_disagreement': round(self.disagreement, 4)}
         return level, message, values

@@ -177,3 +177,28 @@ def test_the_generator_s_faults():
     np.testing.assert_allclose(np.linalg.norm(f.gyro[-1] - imu.gyro[-1]), 0.02 * 3.0)
     with pytest.raises(ValueError, match='unknown IMU fault'):
         publish(imu, 'tired', 1.0)
+
+
+def test_cameras_turning_away_from_the_gyro_is_a_drifting_bias():
+    """The innovation test: fixes that turn 0.04 rad/s away from the gyro's prediction, on
+    average over imu_disagreement_window_s, are a bias running away; camera noise of a few
+    mrad a frame around the gyro is not (a healthy spin_then_drive replay: at most 0.012)."""
+    rng = np.random.default_rng(6)
+    for drift, flagged in ((0.0, False), (0.04, True)):
+        health = ImuHealth(IMU_FRAME)
+        said = []
+        for k in range(1, 81):                          # 10 s at 8 Hz
+            t = k * FRAME_S
+            for j in range(25):
+                health.sample(int(round((t - FRAME_S + j * 0.005) * 1e9)), IMU_FRAME, rng.standard_normal(3) * 0.01)
+            said.append((t, health.check(int(round(t * 1e9)), np.zeros(3)), health.problem))
+            noise = rng.standard_normal(3) * 0.0015        # (the fused fixes: 1-2 mrad)
+            error = noise + (np.array([0.0, 0.0, drift * FRAME_S]) if t >= 4.0 else 0.0)
+            health.camera_residual(int(round(t * 1e9)), error, FRAME_S)
+        bad = [s for s in said if not s[1]]
+        if not flagged:
+            assert bad == [] and health.disagreement < 0.03
+        else:
+            assert bad[0][2] == 'bias_drift' and 4.5 <= bad[0][0] <= 5.25, bad[0]
+            assert 'the cameras turn 0.0' in health.detail and 'away from the gyro (limit 0.03)' in health.detail
+            assert all(p == 'bias_drift' for _, _, p in said if _ >= bad[0][0])     # held
