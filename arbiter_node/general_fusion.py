@@ -70,6 +70,7 @@ PARAMETERS = {
     'imu_refused_window': (100, 'IMU health: ... of this many samples', 1, 1000000),
     'imu_gyro_bias_max': (0.05, 'IMU health: the filter\'s gyro-bias estimate beyond this (rad/s, its norm) is a drifting bias (a MEMS gyro\'s turn-on bias is a few tenths of a degree per second, 0.01 rad/s); it holds until a reset, the bias frozen', 1e-4, 10.0),
     'imu_gyro_disagreement': (0.03, 'IMU health: the cameras\' fixes turning away from the gyro\'s prediction by more than this on average (rad/s, over imu_disagreement_window_s) is a drifting bias (the innovation test)', 1e-4, 10.0),
+    'imu_disagreement_per_rotation': (0.05, 'IMU health: ... plus this much per radian the body turned (the cameras\' own rotation error grows with the rotation: 4 % in the 10 s loop\'s turns)', 0.0, 1.0),
     'imu_disagreement_window_s': (1.0, 'IMU health: ... over this long (s)', 0.1, 600.0),
     'imu_recover_s': (2.0, 'IMU health: after a problem, the gyro is used again once none was seen for this long (s)', 0.0, 3600.0),
     'gyro_bias_settle_s': (3.0, 'the cameras\' fixes tell the gyro bias only from this long after the first one (while their maps form they are off by tenths of a degree between frames, which the filter took for a 4 mrad/s bias)', 0.0, 600.0),
@@ -166,6 +167,7 @@ class GeneralFusion:
             stuck_samples=p['imu_stuck_samples'], silent_s=p['imu_silent_s'],
             refused_fraction=p['imu_refused_fraction'], refused_window=p['imu_refused_window'],
             gyro_bias_max=p['imu_gyro_bias_max'], gyro_disagreement=p['imu_gyro_disagreement'],
+            disagreement_per_rotation=p['imu_disagreement_per_rotation'],
             disagreement_window_s=p['imu_disagreement_window_s'], recover_s=p['imu_recover_s'])) if self.imu is not None else None
         self.gyro_used = False         # this frame step follows the gyro (imu_health says it may)
         self.last_stamp_ns: Optional[int] = None
@@ -371,7 +373,8 @@ class GeneralFusion:
                                                          and self.gyro_used)
                 if camera_update and residual is not None:
                     # (fixes the gate refuses are the cameras' outliers, not the gyro's)
-                    self.imu_health.camera_residual(stamp_ns, residual, step_s)
+                    self.imu_health.camera_residual(stamp_ns, residual, step_s,
+                                                    np.linalg.norm(self.ekf.twist[3:]) * step_s)
                 if not camera_update:
                     self.rejections += 1
                     if self.rejections >= p['max_consecutive_rejections']:

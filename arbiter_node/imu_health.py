@@ -11,12 +11,14 @@ Problems, each with a name the diagnostics say:
 - silent: no sample for more than `silent_s` at a frame's stamp, or none at all since the
   first frame;
 - out_of_order / not_finite: more than `refused_fraction` of the last `refused_window`
-  samples refused by the ImuBuffer (fewer is jitter, tolerated);
+  samples refused by the ImuBuffer (fewer is jitter, tolerated; a sample taken already and
+  delivered again is counted as refused, not as a problem);
 - bias_drift: the filter's gyro-bias estimate beyond `gyro_bias_max` (a MEMS gyro's
   turn-on bias is a few tenths of a degree per second; more is a gyro gone wrong), or the
-  cameras' fixes turning away from the gyro's prediction by more than `gyro_disagreement`
-  on average over `disagreement_window_s` (the innovation test: a bias running away faster
-  than the filter's bias walk lets it follow).
+  cameras' fixes turning away from the gyro's prediction by more than `gyro_disagreement`,
+  plus `disagreement_per_rotation` of the rotation (the cameras' own error grows with it:
+  4 % in the 10 s loop's turns), on average over `disagreement_window_s` (the innovation
+  test: a bias running away faster than the filter's bias walk lets it follow).
 
 Hysteresis: after any problem the gyro stays out until none was seen for `recover_s`. A
 bias_drift holds until the fusion is reset: with the gyro out nothing tells it again.
@@ -40,6 +42,7 @@ class ImuHealthLimits:
     refused_window: int = 100            # samples
     gyro_bias_max: float = 0.05          # rad/s
     gyro_disagreement: float = 0.03      # rad/s
+    disagreement_per_rotation: float = 0.05
     disagreement_window_s: float = 1.0
     recover_s: float = 2.0
 
@@ -69,8 +72,10 @@ class ImuHealth:
         self._heard = deque()                # stamps heard after the last check's
         self._newest: Optional[int] = None   # the newest stamp heard up to the last check
         self._stamp = 0                      # the sample's being looked at
+        self._accepted = {}                  # stamp -> gyro bytes of the latest samples taken
         self._residuals = deque()            # (stamp, rotation error, step s) of camera fixes
         self.disagreement = 0.0              # rad/s: their mean over the window
+        self.disagreement_limit = limits.gyro_disagreement   # rad/s: its limit there
 
     # ------------------------------------------------------------------ per sample
     def sample(self, stamp_ns: int, frame_id: str, gyro, refused: Optional[str] = None):
@@ -87,7 +92,13 @@ class ImuHealth:
             self._see('wrong_frame', f'{self._count("wrong_frame")} of the last {len(self._arrivals)} '
                                      f'samples in frame {frame_id!r}, the rig\'s IMU is {self.frame_id!r}')
             return
+        g = np.asarray(gyro, float).reshape(3)
         if refused is not None:
+            if self._accepted.get(stamp_ns) == g.tobytes():
+                # a sample taken already, delivered again (a graph's hand-over of the
+                # arbiter between workers): not the IMU's fault
+                self._refuse(refused, '')
+                return
             kind = 'not_finite' if 'not finite' in refused else 'out_of_order'
             self._refuse(refused, kind)
             n = self._count(kind)
@@ -95,7 +106,9 @@ class ImuHealth:
                 self._see(kind, f'{n} of the last {len(self._arrivals)} samples refused ({refused})')
             return
         self._arrivals.append('')
-        g = np.asarray(gyro, float).reshape(3)
+        self._accepted[stamp_ns] = g.tobytes()
+        if len(self._accepted) > 2 * lim.refused_window:
+            del self._accepted[next(iter(self._accepted))]
         if self._previous is not None:
             same = g == self._previous
             self._repeats = np.where(same, self._repeats + 1, 0)
@@ -129,11 +142,12 @@ class ImuHealth:
             self._seen.append((self._stamp, problem, detail))
 
     # ------------------------------------------------------------------ per frame step
-    def camera_residual(self, stamp_ns: int, rotation_error, step_s: float):
+    def camera_residual(self, stamp_ns: int, rotation_error, step_s: float, turned_rad: float):
         """A camera fix's rotation against the filter's prediction with the gyro (rad,
-        base_link), the step since the frame before (s)."""
-        if step_s > 0 and np.all(np.isfinite(rotation_error)):
-            self._residuals.append((int(stamp_ns), np.asarray(rotation_error, float), float(step_s)))
+        base_link), the step since the frame before (s) and the body's rotation over it (rad)."""
+        if step_s > 0 and np.all(np.isfinite(rotation_error)) and np.isfinite(turned_rad):
+            self._residuals.append((int(stamp_ns), np.asarray(rotation_error, float), float(step_s),
+                                    abs(float(turned_rad))))
 
     def check(self, stamp_ns: int, gyro_bias: Optional[np.ndarray] = None) -> bool:
         """At a frame's stamp (its samples up to it in): whether the gyro may be used.
@@ -167,11 +181,13 @@ class ImuHealth:
         while self._residuals and self._residuals[0][0] <= stamp_ns - window_ns:
             self._residuals.popleft()
         span = sum(r[2] for r in self._residuals)
-        self.disagreement = (float(np.linalg.norm(sum(r[1] for r in self._residuals))) / span
-                             if span >= 0.5 * lim.disagreement_window_s else 0.0)
-        if seen is None and self.disagreement > lim.gyro_disagreement:
+        full = span >= 0.5 * lim.disagreement_window_s
+        self.disagreement = float(np.linalg.norm(sum(r[1] for r in self._residuals))) / span if full else 0.0
+        self.disagreement_limit = lim.gyro_disagreement + (
+            lim.disagreement_per_rotation * sum(r[3] for r in self._residuals) / span if full else 0.0)
+        if seen is None and self.disagreement > self.disagreement_limit:
             seen = ('bias_drift', f'the cameras turn {self.disagreement:.3f} rad/s away from the gyro '
-                                  f'(limit {lim.gyro_disagreement:g})')
+                                  f'(limit {self.disagreement_limit:.3f})')
         if seen is None and self.problem == 'bias_drift':
             seen = (self.problem, self.detail)     # held: with the gyro out, nothing tells it again
         if seen is not None and seen[0] != 'bias_drift':
@@ -226,5 +242,6 @@ class ImuHealth:
                   'imu_last_problem': self.last_problem or '', 'imu_gyro_used': state == 'ok',
                   'imu_samples': self.received, 'imu_refused': self.refused,
                   'imu_refused_reason': self.reason or '', 'imu_faults': self.faults,
-                  'imu_disagreement': round(self.disagreement, 4)}
+                  'imu_disagreement': round(self.disagreement, 4),
+                  'imu_disagreement_limit': round(self.disagreement_limit, 4)}
         return level, message, values
