@@ -152,8 +152,14 @@ class GeneralArbiterNode(Node):
         values['imu_publishers'] = self.imu_sub.get_publisher_count() if self.imu_sub is not None else 0
         if (health.state, health.problem) != self.imu_said:
             self.imu_said = (health.state, health.problem)
-            log = self.get_logger()
-            {'ok': log.info, 'warn': log.warn, 'error': log.error}[level](f'{self.rig.imu.topic}: {message}')
+            # (a call site per severity: rclpy refuses one site that changes its severity)
+            said = f'{self.rig.imu.topic}: {message}'
+            if level == 'error':
+                self.get_logger().error(said)
+            elif level == 'warn':
+                self.get_logger().warning(said)
+            else:
+                self.get_logger().info(said)
         return level, message, values
 
     def imu_settled(self, stamp_ns) -> bool:
