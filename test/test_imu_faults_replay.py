@@ -14,11 +14,13 @@ from multicam_ego_motion.evaluation.trajectory_io import read_bag_topic
 
 FAULT_AT = 2.0
 FRAMES = 10 * 8 + 1
-# the latest frame each is said at: the next frame for a sample's own problem, the silent
-# one after imu_silent_s, the drifting bias once the cameras' fixes have turned away from
-# the gyro for long enough (measured: 2.0, 2.125, 2.125, 2.0, 2.125 and 3.875 s)
+# the latest frame each is to be said at: the next frame for a sample's own problem, the
+# silent one after imu_silent_s, the drifting bias once the cameras' fixes have turned away
+# from the gyro for long enough (measured: 2.0, 2.125, 2.125, 2.25, 2.125 and 3.625 s; ATE
+# 0.39, 0.41, 0.43, 1.18, 0.43 and 0.22 %, against 1.31 % with --no-imu and 0.195 % with
+# the healthy IMU)
 SAID_BY = {'wrong_frame': 2.25, 'saturated': 2.25, 'stuck': 2.25, 'silent': 2.5,
-           'out_of_order': 2.25, 'bias_drift': 5.0}
+           'out_of_order': 2.25, 'bias_drift': 4.5}
 SCENE = ('--scenario', 'spin_then_drive', '--seed', 7, '--duration', 10, '--rate', 8,
          '--width', 320, '--height', 240, '--fx', 200, '--imu-rate', 200)
 
