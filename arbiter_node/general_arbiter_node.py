@@ -108,6 +108,7 @@ class GeneralArbiterNode(Node):
         self.held = []                       # (sync group, since): waiting for its wheel reading
         self.imu_sub = None
         self.imu_error = None                # the last problem said of the IMU (not said again)
+        self.imu_said = ('ok', None)         # the IMU health's (state, problem) last logged
         if self.fusion.wants_imu():
             self.imu_sub = self.create_subscription(Imu, self.rig.imu.topic, self.on_imu,
                                                     imu_qos(p['imu_qos']))
@@ -135,17 +136,31 @@ class GeneralArbiterNode(Node):
         self.fuse_held()
 
     def on_imu(self, msg: Imu):
-        problem = None
-        if msg.header.frame_id != self.rig.imu.frame_id:
-            problem = (f'{self.rig.imu.topic}: sample in frame {msg.header.frame_id!r}, the rig\'s IMU '
-                       f'is {self.rig.imu.frame_id!r}: sample not used')
-        else:
-            problem = self.fusion.add_imu(stamp_to_ns(msg.header.stamp), imu_gyro(msg),
-                                          imu_gyro_covariance(msg))
+        problem = self.fusion.add_imu(stamp_to_ns(msg.header.stamp), imu_gyro(msg),
+                                      imu_gyro_covariance(msg), msg.header.frame_id)
         if problem is not None and problem != self.imu_error:
-            self.get_logger().error(problem, throttle_duration_sec=5.0)
+            self.get_logger().error(f'{self.rig.imu.topic}: {problem}', throttle_duration_sec=5.0)
         self.imu_error = problem
         self.fuse_held()
+
+    def imu_status(self):
+        """The IMU's health for /diagnostics (None without one), its changes logged once."""
+        health = self.fusion.imu_health
+        if health is None:
+            return None
+        level, message, values = health.status()
+        values['imu_publishers'] = self.imu_sub.get_publisher_count() if self.imu_sub is not None else 0
+        if (health.state, health.problem) != self.imu_said:
+            self.imu_said = (health.state, health.problem)
+            # (a call site per severity: rclpy refuses one site that changes its severity)
+            said = f'{self.rig.imu.topic}: {message}'
+            if level == 'error':
+                self.get_logger().error(said)
+            elif level == 'warn':
+                self.get_logger().warning(said)
+            else:
+                self.get_logger().info(said)
+        return level, message, values
 
     def imu_settled(self, stamp_ns) -> bool:
         # As the wheel: the gyro's samples up to the frame, whichever callback came first
@@ -323,9 +338,16 @@ class GeneralArbiterNode(Node):
             parts.append(f'no estimate from cameras: {", ".join(missing)}')
         if fused.cameras_rejected:
             parts.append('rejected: ' + ', '.join(f'{k} ({v})' for k, v in fused.cameras_rejected.items()))
+        imu = self.imu_status()
+        imu_values = {}
+        if imu is not None:
+            imu_level, imu_message, imu_values = imu
+            if imu_level != 'ok':
+                parts.append(imu_message)
+                level = 'error' if 'error' in (level, imu_level) else 'warn'
         diagnostics.emit(stamp, diagnostics.status(
             'ego_motion/general_arbiter', level, '; '.join(parts),
-            {'state': fused.state, 'scale_observed': fused.scale_observed,
+            {**imu_values, 'state': fused.state, 'scale_observed': fused.scale_observed,
              'scale_source': fused.scale_fixed_by,
              'scale_relative_std': round(float(fused.scale_relative_std), 6),
              'scale_observations': self.fusion.scale.n_observations,

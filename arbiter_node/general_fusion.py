@@ -22,6 +22,7 @@ from arbiter_node.body_ekf import BodyEKF, BodyEkfParams
 from arbiter_node.camera_median import median_filter
 from arbiter_node.covariance import condition_covariance
 from arbiter_node.imu_buffer import ImuBuffer
+from arbiter_node.imu_health import ImuHealth, ImuHealthLimits
 from arbiter_node.quarter_fusion import CHI2_6DOF_999, information_fusion
 from arbiter_node.time_shift import shift_pose
 from arbiter_node.rig_motion_fit import fit_rig_motion
@@ -61,6 +62,17 @@ PARAMETERS = {
     'imu_gyro_variance': (1e-5, 'a gyro sample\'s variance per axis ((rad/s)^2) when its message has no covariance', 1e-12, 1.0),
     'gyro_bias_std': (0.01, 'the gyro bias\'s prior std (rad/s; MEMS: a few tenths of a degree per second)', 1e-6, 1.0),
     'gyro_bias_walk': (1e-4, 'the gyro bias\'s random walk (rad/s/sqrt(s))', 1e-9, 1.0),
+    'imu_gyro_saturation': (34.9, 'IMU health (imu_health): a gyro component at or beyond this is saturated (rad/s; 34.9 = 2000 deg/s, a MEMS gyro\'s widest range: set the driver\'s)', 0.01, 1000.0),
+    'imu_saturation_repeats': (20, 'IMU health: one gyro component reading the same non-zero value this many samples in a row while another moves is saturated (a range that clips)', 2, 1000000),
+    'imu_stuck_samples': (20, 'IMU health: the gyro repeating one sample exactly (all three axes) this many times in a row is stuck (a MEMS gyro\'s noise never repeats)', 2, 1000000),
+    'imu_silent_s': (0.2, 'IMU health: no sample for longer than this at a frame\'s stamp, or none since the first frame, is a silent IMU (s)', 0.01, 600.0),
+    'imu_refused_fraction': (0.05, 'IMU health: more than this fraction of the last imu_refused_window samples refused (out of order, repeated or not finite) is a fault; fewer is jitter', 0.0, 1.0),
+    'imu_refused_window': (100, 'IMU health: ... of this many samples', 1, 1000000),
+    'imu_gyro_bias_max': (0.05, 'IMU health: the filter\'s gyro-bias estimate beyond this (rad/s, its norm) is a drifting bias (a MEMS gyro\'s turn-on bias is a few tenths of a degree per second, 0.01 rad/s); it holds until a reset, the bias frozen', 1e-4, 10.0),
+    'imu_gyro_disagreement': (0.03, 'IMU health: the cameras\' fixes turning away from the gyro\'s prediction by more than this on average (rad/s, over imu_disagreement_window_s) is a drifting bias (the innovation test)', 1e-4, 10.0),
+    'imu_disagreement_per_rotation': (0.05, 'IMU health: ... plus this much per radian the body turned (the cameras\' own rotation error grows with the rotation: 4 % in the 10 s loop\'s turns)', 0.0, 1.0),
+    'imu_disagreement_window_s': (1.0, 'IMU health: ... over this long (s)', 0.1, 600.0),
+    'imu_recover_s': (2.0, 'IMU health: after a problem, the gyro is used again once none was seen for this long (s)', 0.0, 3600.0),
     'gyro_bias_settle_s': (3.0, 'the cameras\' fixes tell the gyro bias only from this long after the first one (while their maps form they are off by tenths of a degree between frames, which the filter took for a 4 mrad/s bias)', 0.0, 600.0),
     'planar_motion': (True, 'the base moves on the rig\'s level floor (rig floor_z, not with floor_level false; robot_localization calls it two_d_mode): every frame measures its vz, wx, wy as 0', None, None),
     'planar_twist_std': (1e-3, 'std of that planar-motion measurement of vz (m/s), wx and wy (rad/s)', 1e-6, 10.0),
@@ -150,6 +162,14 @@ class GeneralFusion:
         self.ekf.reinitialize(np.eye(4), np.eye(6) * p['initial_pose_std'] ** 2)
         self.imu = (ImuBuffer(self.rig.imu.rotation, p['imu_gyro_variance'])
                     if self.wants_imu() else None)
+        self.imu_health = ImuHealth(self.rig.imu.frame_id, ImuHealthLimits(
+            gyro_saturation=p['imu_gyro_saturation'], saturation_repeats=p['imu_saturation_repeats'],
+            stuck_samples=p['imu_stuck_samples'], silent_s=p['imu_silent_s'],
+            refused_fraction=p['imu_refused_fraction'], refused_window=p['imu_refused_window'],
+            gyro_bias_max=p['imu_gyro_bias_max'], gyro_disagreement=p['imu_gyro_disagreement'],
+            disagreement_per_rotation=p['imu_disagreement_per_rotation'],
+            disagreement_window_s=p['imu_disagreement_window_s'], recover_s=p['imu_recover_s'])) if self.imu is not None else None
+        self.gyro_used = False         # this frame step follows the gyro (imu_health says it may)
         self.last_stamp_ns: Optional[int] = None
         self.wheel_used_ns: Optional[int] = None       # the stamp of the last wheel reading applied
         self.last_support_ns: Optional[int] = None     # last camera update or wheel prior
@@ -169,13 +189,27 @@ class GeneralFusion:
         """Whether the rig's IMU's gyro is fused (imu_buffer, body_ekf gyro_bias)."""
         return bool(self.params['use_imu'] and getattr(self.rig, 'imu', None) is not None)
 
-    def add_imu(self, stamp_ns: int, gyro, gyro_covariance=None) -> Optional[str]:
-        """One IMU sample (gyro in the IMU's frame, rad/s); returns why it was refused."""
-        return None if self.imu is None else self.imu.add(stamp_ns, gyro, gyro_covariance)
+    def add_imu(self, stamp_ns: int, gyro, gyro_covariance=None, frame_id: Optional[str] = None) -> Optional[str]:
+        """One IMU sample (gyro in the frame it names, rad/s; frame_id None: the rig's IMU
+        frame); returns why it was refused. Every sample tells the IMU's health."""
+        if self.imu is None:
+            return None
+        frame_id = self.rig.imu.frame_id if frame_id is None else frame_id
+        if frame_id != self.rig.imu.frame_id:
+            refused = (f'sample in frame {frame_id!r}, the rig\'s IMU is {self.rig.imu.frame_id!r}: '
+                       'sample not used')
+        else:
+            refused = self.imu.add(stamp_ns, gyro, gyro_covariance)
+        self.imu_health.sample(stamp_ns, frame_id, gyro, refused)
+        return refused
 
     def imu_settled(self, stamp_ns: int) -> bool:
-        """The IMU's samples cover the time up to stamp_ns (always, without an IMU)."""
-        return self.imu is None or self.imu.settled(stamp_ns)
+        """The IMU's samples cover the time up to stamp_ns, or it is silent, or it is heard
+        there with samples that were refused (always, without an IMU)."""
+        if self.imu is None or self.imu.settled(stamp_ns) or self.imu_health.silent:
+            return True
+        heard = self.imu_health.last_heard_ns
+        return heard is not None and heard >= stamp_ns
 
     def _cameras_settled(self, stamp_ns: int) -> bool:
         """Whether the cameras' fixes may tell the gyro bias (gyro_bias_settle_s)."""
@@ -185,7 +219,7 @@ class GeneralFusion:
     def _predict(self, t0_ns: int, t1_ns: int):
         """The EKF from t0 to t1, its rotation following the gyro where its samples cover
         the step (else the constant twist's)."""
-        gyro = self.imu.mean_rate(t0_ns, t1_ns) if self.imu is not None else None
+        gyro = self.imu.mean_rate(t0_ns, t1_ns) if self.gyro_used else None
         self.ekf.predict((t1_ns - t0_ns) * 1e-9, gyro)
         if gyro is not None:
             self.ekf.update_gyro(*gyro)
@@ -207,7 +241,7 @@ class GeneralFusion:
 
     def _wheel_update(self, wheel_twist) -> bool:
         axes = (0, 1, 5) if self.params['wheel_planar_only'] else tuple(range(6))
-        if self.imu is not None:
+        if self.gyro_used:
             # with a gyro, the wheel's speed only: its yaw rate carries the slip's bias (4-8
             # mrad/s in the generator's), which the filter then took for the gyro's (corridor:
             # heading 4.8 deg off after 20 s, final drift 5.3 %)
@@ -267,6 +301,10 @@ class GeneralFusion:
         p = self.params
         wheel_used = False
         camera_stamps = {n: e.stamp_ns for n, e in camera_estimates.items()}
+        if self.imu_health is not None:
+            # A bad IMU (imu_health): this step without the gyro, as without an IMU; the
+            # bias estimate is passed even while frozen, so a drifted one keeps it out.
+            self.gyro_used = self.imu_health.check(stamp_ns, self.ekf.gyro_bias)
         if wheel_stamp_ns is not None:
             if self.wheel_used_ns is not None and wheel_stamp_ns <= self.wheel_used_ns:
                 # Each reading once: cameras at their own stamps come several times per wheel
@@ -285,6 +323,7 @@ class GeneralFusion:
             self._predict(wheel_stamp_ns, stamp_ns)
         elif self.last_stamp_ns is not None:
             self._predict(self.last_stamp_ns, stamp_ns)   # dt <= 0 is a no-op
+        step_s = 0.0 if self.last_stamp_ns is None else (stamp_ns - self.last_stamp_ns) * 1e-9
         self.last_stamp_ns = stamp_ns if self.last_stamp_ns is None else max(stamp_ns, self.last_stamp_ns)
         T_prev = self.last_T
 
@@ -325,8 +364,17 @@ class GeneralFusion:
                 self.ekf.reinitialize(T_f, cov_f, twist_cov=twist_cov)
                 camera_update, d2 = True, 0.0
             else:
+                # the innovation test of imu_health: where the fix turns against the gyro
+                residual = (self.ekf.T[:3, :3].T @ self.ekf.pose_innovation(T_f, cov_f)[0][3:]
+                            if self.gyro_used and self._cameras_settled(stamp_ns) and step_s > 0 else None)
+                # (the gyro out: its bias frozen, as it no longer moves the pose)
                 camera_update, d2 = self.ekf.update_pose(T_f, cov_f, p['ekf_gate_chi2'],
-                                                         learn_bias=self._cameras_settled(stamp_ns))
+                                                         learn_bias=self._cameras_settled(stamp_ns)
+                                                         and self.gyro_used)
+                if camera_update and residual is not None:
+                    # (fixes the gate refuses are the cameras' outliers, not the gyro's)
+                    self.imu_health.camera_residual(stamp_ns, residual, step_s,
+                                                    np.linalg.norm(self.ekf.twist[3:]) * step_s)
                 if not camera_update:
                     self.rejections += 1
                     if self.rejections >= p['max_consecutive_rejections']:
@@ -469,7 +517,7 @@ class GeneralFusion:
         """The axes of a twist measured from the tracks of the previous frame pair to use: with
         a gyro, not its rotation (a frame late, it read the gyro's rate minus the step's change
         as a bias of 0.09 rad/s at the start of a spin)."""
-        return tuple(a for a in axes if a < 3) if self.imu is not None else tuple(axes)
+        return tuple(a for a in axes if a < 3) if self.gyro_used else tuple(axes)
 
     def _road_twist(self) -> int:
         """road_twist: every camera's motion between the two previous frames (this frame's

@@ -119,3 +119,34 @@ def test_the_rig_file_keeps_the_imu_and_refuses_a_bad_one(tmp_path):
         (tmp_path / 'bad.yaml').write_text(yaml.safe_dump({**data, 'imu': imu}))
         with pytest.raises(UserError, match=words):
             load_rig(tmp_path / 'bad.yaml')
+
+
+def test_a_bad_imu_changes_the_imu_and_nothing_else(tmp_path):
+    """`generate --imu-fault`: the IMU's samples go bad from --imu-fault-at on (here stamps
+    out of order, drawn from the seed: the same twice), every other message is the bag's
+    without the fault, to the byte."""
+    scene = dict(scenario='loop', seed=5, duration=2.0, rate=10.0, width=160, height=120,
+                 progress=False, imu_rate=RATE)
+    generate(out=tmp_path / 'healthy', **scene)
+    generate(out=tmp_path / 'bad', imu_fault='out_of_order', imu_fault_at=1.0, **scene)
+    generate(out=tmp_path / 'again', imu_fault='out_of_order', imu_fault_at=1.0, **scene)
+    bags = {k: read_bag(tmp_path / k)[1] for k in ('healthy', 'bad', 'again')}
+
+    def rest(msgs):
+        return [(topic, t, bytes(m.data) if hasattr(m, 'data') else repr(m)) for topic, t, m in msgs
+                if topic != IMU_TOPIC]
+
+    def imu(msgs):
+        return [(t, m.header.stamp.sec * 10 ** 9 + m.header.stamp.nanosec) for topic, t, m in msgs
+                if topic == IMU_TOPIC]
+    assert rest(bags['bad']) == rest(bags['healthy'])
+    assert imu(bags['bad']) == imu(bags['again'])
+    log_times = [t for t, _ in imu(bags['bad'])]
+    assert log_times == [t for t, _ in imu(bags['healthy'])]
+    stamps = np.array([s for _, s in imu(bags['bad'])])
+    start = log_times[0]
+    before = np.array(log_times) < start + 1_000_000_000
+    assert np.array_equal(stamps[before], np.array(log_times)[before])
+    assert np.any(np.diff(stamps[~before]) < 0)
+    with pytest.raises(Exception, match='needs an IMU'):
+        generate(out=tmp_path / 'none', **{**scene, 'imu_rate': 0.0}, imu_fault='stuck')

@@ -138,13 +138,14 @@ class RigBagWriter:
         self._write(topic, 'nav_msgs/msg/Odometry', msg, time_ns)
 
     def write_imu(self, topic: str, time_ns: int, frame_id: str, gyro, accel,
-                  gyro_variance: float, accel_variance: float):
+                  gyro_variance: float, accel_variance: float, stamp_ns: int = None):
         """One sensor_msgs/Imu: angular velocity (rad/s) and specific force (m/s^2) in
-        `frame_id`, diagonal covariances; no orientation (REP-145: covariance[0] = -1)."""
+        `frame_id`, diagonal covariances; no orientation (REP-145: covariance[0] = -1).
+        stamp_ns: its header stamp when not its log time (a driver's stamps out of order)."""
         no_orientation = np.zeros(9)
         no_orientation[0] = -1.0
         msg = _T['sensor_msgs/msg/Imu'](
-            header=header(time_ns, frame_id),
+            header=header(time_ns if stamp_ns is None else stamp_ns, frame_id),
             orientation=_T['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0),
             orientation_covariance=no_orientation,
             angular_velocity=vector3(gyro), angular_velocity_covariance=np.eye(3).ravel() * gyro_variance,

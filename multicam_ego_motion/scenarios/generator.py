@@ -17,7 +17,8 @@ from multicam_ego_motion.geometry.camera_intrinsics import CameraIntrinsics
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.geometry.rig import (MAX_CAMERAS, CameraMount, ImuMount, Rig, optical_rotation,
                                              paper_rig)
-from multicam_ego_motion.scenarios.imu import IMU_FRAME, IMU_ROTATION, IMU_TRANSLATION, ImuNoise, simulate_imu
+from multicam_ego_motion.scenarios.imu import (IMU_FAULTS, IMU_FRAME, IMU_ROTATION, IMU_TRANSLATION, ImuNoise,
+                                              publish, simulate_imu)
 from multicam_ego_motion.scenarios.photometry import LightingEffects
 from multicam_ego_motion.scenarios.renderer import CameraRenderer
 from multicam_ego_motion.scenarios.scene import CAMERA_HEIGHT, scene_for
@@ -65,6 +66,15 @@ def configure_parser(p):
                    help='also write an IMU on /imu/data at this rate (200 for a robot\'s MEMS '
                         'IMU: white noise, turn-on bias and bias random walk, its frame imu_link '
                         'off base_link in /tf_static); default 0: none')
+    p.add_argument('--imu-fault', choices=IMU_FAULTS, default=None,
+                   help='with --imu-rate: a bad IMU from --imu-fault-at on: its samples in '
+                        'base_link instead of imu_link (wrong_frame), its gyro clipped at 0.5 rad/s '
+                        '(saturated), repeating one sample (stuck), no samples (silent), stamps '
+                        'jittered by 1.5 periods either way (out_of_order, seeded), a gyro bias '
+                        'running away at 0.02 rad/s per second (bias_drift); the rest of the bag '
+                        'is the one without the fault')
+    p.add_argument('--imu-fault-at', type=float, default=0.0, metavar='S',
+                   help='--imu-fault: from this many seconds after the start (default 0)')
     p.add_argument('--camera-rates', default=None, metavar='HZ,HZ,...',
                    help='per-camera frame rates, one value per camera in rig order (e.g. '
                         '30,30,15,15; default: --rate for every camera); the wheel stays at --rate')
@@ -183,7 +193,8 @@ def pose_matrix(x, y, yaw):
 def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=480, fx=None,
              k1=0.0, cameras=4, rig_out=None, compression='zstd', progress=True,
              rig_kind='ring', baseline=0.3, camera_offsets_ms=None, camera_rates=None,
-             image_codec=None, jpeg_quality=90, camera_phases=None, imu_rate=0.0):
+             image_codec=None, jpeg_quality=90, camera_phases=None, imu_rate=0.0,
+             imu_fault=None, imu_fault_at=0.0):
     """Render the bag; returns a summary dict (frames, seconds, bag size).
 
     camera_offsets_ms / camera_rates (one per camera): free-running cameras, each captured
@@ -191,7 +202,8 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
     wheel's), the wheel at `rate` as for a synchronised rig. image_codec ('jpeg', 'png'):
     the cameras' images as CompressedImage (transport `compressed` in the rig). imu_rate
     (Hz, > 0): an IMU on /imu/data (scenarios/imu.py), its own noise stream: the images and
-    the wheel are the same as without it."""
+    the wheel are the same as without it. imu_fault (scenarios/imu.IMU_FAULTS): that IMU
+    goes bad from imu_fault_at (s) on, its own seeded stream; everything else as without it."""
     out = Path(out)
     check_output_free(out)
     if rig_kind not in ('ring', 'stereo'):
@@ -203,9 +215,16 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
     if fx is not None:
         intr = CameraIntrinsics(width, height, fx, fx, intr.cx, intr.cy, intr.distortion)
     # (a child per stream: a fourth one leaves the first three as they were)
-    texture_seed, noise_seed, wheel_seed, imu_seed = np.random.SeedSequence(seed).spawn(4)
+    # (a child per stream: a fifth one leaves the first four as they were)
+    texture_seed, noise_seed, wheel_seed, imu_seed, imu_fault_seed = np.random.SeedSequence(seed).spawn(5)
     if imu_rate < 0 or not np.isfinite(imu_rate):
         raise UserError(f'--imu-rate must be >= 0 Hz, got {imu_rate}')
+    if imu_fault is not None and imu_fault not in IMU_FAULTS:
+        raise UserError(f'unknown --imu-fault {imu_fault!r} (one of: {", ".join(IMU_FAULTS)})')
+    if imu_fault is not None and not imu_rate > 0:
+        raise UserError('--imu-fault needs an IMU: give --imu-rate too')
+    if not (np.isfinite(imu_fault_at) and imu_fault_at >= 0):
+        raise UserError(f'--imu-fault-at must be >= 0 s, got {imu_fault_at}')
 
     if camera_phases not in (None, 'random'):
         raise UserError(f'unknown camera phases {camera_phases!r} (random)')
@@ -241,16 +260,21 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
     imu = simulate_imu(trajectory, imu_rate, np.random.default_rng(imu_seed)) if imu_rate > 0 else None
     if imu is not None:
         rig = replace(rig, imu=ImuMount(IMU_FRAME, np.array(IMU_TRANSLATION), IMU_ROTATION))
-    imu_stamps = (STAMP_EPOCH_NS + np.round(imu.times * 1e9).astype(np.int64)) if imu is not None else []
+    published = (publish(imu, imu_fault, imu_fault_at, np.random.default_rng(imu_fault_seed))
+                 if imu is not None else None)
+    to_ns = lambda s: STAMP_EPOCH_NS + np.round(s * 1e9).astype(np.int64)
+    imu_log_ns = to_ns(published.log_times) if imu is not None else []
+    imu_stamps = to_ns(published.stamps) if imu is not None else []
     imu_variances = ImuNoise().sample_variances(imu_rate) if imu is not None else None
     imu_next = 0
 
     def write_imu_until(bag, stamp):
         # in log-time order with the frames: every sample up to and including `stamp`
         nonlocal imu_next
-        while imu_next < len(imu_stamps) and imu_stamps[imu_next] <= stamp:
-            bag.write_imu(rig.imu.topic, int(imu_stamps[imu_next]), rig.imu.frame_id, imu.gyro[imu_next],
-                          imu.accel[imu_next], *imu_variances)
+        while imu_next < len(imu_log_ns) and imu_log_ns[imu_next] <= stamp:
+            bag.write_imu(rig.imu.topic, int(imu_log_ns[imu_next]), published.frame_ids[imu_next],
+                          published.gyro[imu_next], published.accel[imu_next], *imu_variances,
+                          stamp_ns=int(imu_stamps[imu_next]))
             imu_next += 1
 
     scene = scene_for(scenario)
@@ -287,8 +311,8 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
                 bag.write_odometry('/wheel/odom', stamp, pose_matrix(wx[j], wy[j], wyaw[j]),
                                    (wheel_v[j], 0.0, 0.0), (0.0, 0.0, wheel_w[j]),
                                    *wheel.variances(times[j], wx[j], wy[j], wheel_v[j], wheel_w[j]))
-        if imu is not None:
-            write_imu_until(bag, int(imu_stamps[-1]))
+        if imu is not None and len(imu_log_ns):
+            write_imu_until(bag, int(imu_log_ns[-1]))
     elapsed = time.perf_counter() - started
     rig.save(out / 'rig.yaml')
     if rig_out:
@@ -310,7 +334,8 @@ def run(args) -> int:
                                                            '--camera-offsets-ms'),
                        camera_rates=parse_camera_list(args.camera_rates, n_cameras, '--camera-rates'),
                        image_codec=args.compressed, jpeg_quality=args.jpeg_quality,
-                       camera_phases=args.camera_phases, imu_rate=args.imu_rate)
+                       camera_phases=args.camera_phases, imu_rate=args.imu_rate,
+                       imu_fault=args.imu_fault, imu_fault_at=args.imu_fault_at)
     print(f'{args.out}: {summary["frames"]} frames x {len(summary["cameras"])} cameras '
           f'({", ".join(summary["cameras"])}), path {summary["path_length"]:.1f} m, '
           f'rendered and written in {summary["seconds"]:.1f} s ({summary["fps"]:.1f} frames/s), '

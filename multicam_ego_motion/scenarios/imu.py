@@ -92,3 +92,54 @@ def simulate_imu(trajectory, rate_hz: float, rng: np.random.Generator, noise: Im
     gyro = w @ R + gyro_bias + rng.standard_normal((n, 3)) * np.sqrt(gyro_var)
     accel = f @ R + accel_bias + rng.standard_normal((n, 3)) * np.sqrt(accel_var)
     return ImuSamples(times, gyro, accel, gyro_bias, accel_bias)
+
+
+# --- a bad IMU (`ego-motion generate --imu-fault F --imu-fault-at S`) -------------------
+IMU_FAULTS = ('wrong_frame', 'saturated', 'stuck', 'silent', 'out_of_order', 'bias_drift')
+WRONG_FRAME = 'base_link'         # a driver that stamps its samples in the robot's frame
+SATURATED_RANGE = 0.5             # rad/s: a gyro whose range was set below the robot's turns
+BIAS_DRIFT_RATE = 0.02            # rad/s per second: a bias running away (a failing gyro)
+OUT_OF_ORDER_JITTER = 1.5         # sample periods: each stamp moved by up to this either way
+
+
+@dataclass
+class PublishedImu:
+    """What a driver publishes, sample by sample in publishing order."""
+    log_times: np.ndarray     # (M,) s: when each is published (the bag's log time)
+    stamps: np.ndarray        # (M,) s: its header stamp
+    frame_ids: list           # (M,) its header frame_id
+    gyro: np.ndarray          # (M, 3)
+    accel: np.ndarray         # (M, 3)
+
+
+def publish(samples: ImuSamples, fault: str = None, at_s: float = 0.0,
+            rng: np.random.Generator = None) -> PublishedImu:
+    """The samples as a driver publishes them, from `at_s` on with `fault` (one of
+    IMU_FAULTS; None: a healthy IMU). rng: the fault's own stream (out_of_order)."""
+    t = samples.times
+    gyro, accel = samples.gyro.copy(), samples.accel.copy()
+    stamps = t.copy()
+    frames = [IMU_FRAME] * len(t)
+    keep = np.ones(len(t), bool)
+    bad = t >= at_s
+    if fault is None:
+        pass
+    elif fault == 'wrong_frame':
+        frames = [WRONG_FRAME if b else IMU_FRAME for b in bad]
+    elif fault == 'saturated':
+        gyro[bad] = np.clip(gyro[bad], -SATURATED_RANGE, SATURATED_RANGE)
+    elif fault == 'stuck':
+        k = int(np.argmax(bad)) if bad.any() else len(t)
+        gyro[k:], accel[k:] = gyro[k], accel[k]
+    elif fault == 'silent':
+        keep = ~bad
+    elif fault == 'out_of_order':
+        jitter = rng.uniform(-OUT_OF_ORDER_JITTER, OUT_OF_ORDER_JITTER, len(t)) * np.median(np.diff(t))
+        stamps = np.where(bad, t + jitter, t)
+    elif fault == 'bias_drift':
+        ramp = np.clip(t - at_s, 0.0, None) * BIAS_DRIFT_RATE / np.sqrt(3.0)
+        gyro += ramp[:, None]
+    else:
+        raise ValueError(f'unknown IMU fault {fault!r} (one of: {", ".join(IMU_FAULTS)})')
+    return PublishedImu(t[keep], stamps[keep], [f for f, k in zip(frames, keep) if k],
+                        gyro[keep], accel[keep])
