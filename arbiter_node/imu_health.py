@@ -62,8 +62,8 @@ class ImuHealth:
         self.faults = 0                      # times a healthy IMU turned faulty
         self.last_problem: Optional[str] = None
         self.last_check_ns: Optional[int] = None
-        self._previous: Optional[np.ndarray] = None
-        self._repeats = np.zeros(3, int)     # per axis: samples equal to the one before
+        self._previous: Optional[tuple] = None
+        self._repeats = [0, 0, 0]            # per axis: samples equal to the one before
         self._identical = 0                  # samples equal to the one before on all axes
         self._arrivals = deque(maxlen=limits.refused_window)   # refusal kind or '' per sample
         # (stamp, problem, detail) seen and not yet checked; a check takes those up to its
@@ -72,7 +72,7 @@ class ImuHealth:
         self._heard = deque()                # stamps heard after the last check's
         self._newest: Optional[int] = None   # the newest stamp heard up to the last check
         self._stamp = 0                      # the sample's being looked at
-        self._accepted = {}                  # stamp -> gyro bytes of the latest samples taken
+        self._accepted = {}                  # stamp -> gyro (x, y, z) of the latest samples taken
         self._residuals = deque()            # (stamp, rotation error, step s) of camera fixes
         self.disagreement = 0.0              # rad/s: their mean over the window
         self.disagreement_limit = limits.gyro_disagreement   # rad/s: its limit there
@@ -92,9 +92,10 @@ class ImuHealth:
             self._see('wrong_frame', f'{self._count("wrong_frame")} of the last {len(self._arrivals)} '
                                      f'samples in frame {frame_id!r}, the rig\'s IMU is {self.frame_id!r}')
             return
-        g = np.asarray(gyro, float).reshape(3)
+        # (plain floats: 200 samples a second, where 3-element numpy operations cost 4x)
+        g = tuple(float(v) for v in np.ravel(gyro))
         if refused is not None:
-            if self._accepted.get(stamp_ns) == g.tobytes():
+            if self._accepted.get(stamp_ns) == g:
                 # a sample taken already, delivered again (a graph's hand-over of the
                 # arbiter between workers): not the IMU's fault
                 self._refuse(refused, '')
@@ -106,23 +107,25 @@ class ImuHealth:
                 self._see(kind, f'{n} of the last {len(self._arrivals)} samples refused ({refused})')
             return
         self._arrivals.append('')
-        self._accepted[stamp_ns] = g.tobytes()
+        self._accepted[stamp_ns] = g
         if len(self._accepted) > 2 * lim.refused_window:
             del self._accepted[next(iter(self._accepted))]
         if self._previous is not None:
-            same = g == self._previous
-            self._repeats = np.where(same, self._repeats + 1, 0)
-            self._identical = self._identical + 1 if same.all() else 0
+            self._repeats = [r + 1 if a == b else 0 for a, b, r in zip(g, self._previous, self._repeats)]
+            self._identical = self._identical + 1 if g == self._previous else 0
         self._previous = g
         if self._identical + 1 >= lim.stuck_samples:
             self._see('stuck', f'{self._identical + 1} identical samples')
             return
-        at_limit = np.abs(g) >= lim.gyro_saturation
+        at_limit = [abs(v) >= lim.gyro_saturation for v in g]
+        if not any(at_limit) and max(self._repeats) + 1 < lim.saturation_repeats:
+            return
         # one axis held while another moved within its run: clipped, not stuck
-        clipped = ((self._repeats + 1 >= lim.saturation_repeats) & (g != 0.0)
-                   & (self._repeats.min() < self._repeats))
-        if at_limit.any() or clipped.any():
-            i = int(np.argmax(at_limit | clipped))
+        low = min(self._repeats)
+        clipped = [r + 1 >= lim.saturation_repeats and v != 0.0 and low < r
+                   for r, v in zip(self._repeats, g)]
+        if any(at_limit) or any(clipped):
+            i = next(k for k in range(3) if at_limit[k] or clipped[k])
             self._see('saturated', f'gyro {AXES[i]} at {g[i]:+.3f} rad/s'
                                    + (f' (limit {lim.gyro_saturation:g})' if at_limit[i] else
                                       f' for {self._repeats[i] + 1} samples'))

@@ -117,7 +117,8 @@ def test_targets_table_one_row_each():
 def test_bench_help_lists_the_skip_options():
     r = run_cli('bench', '--help')
     assert r.returncode == 0, r.stderr
-    for opt in ('--skip-transport-floor', '--skip-camera-rate', '--skip-live-vs-offline', '--camera-rate-bags'):
+    for opt in ('--skip-transport-floor', '--skip-camera-rate', '--skip-live-vs-offline', '--skip-imu',
+                '--camera-rate-bags'):
         assert opt in r.stdout
 
 
@@ -204,3 +205,11 @@ def test_cores_needed_per_camera_rate_here_and_at_the_reference_speed():
     # on a machine at 12 us per LK point the reference (6 us) machine needs half
     line = c.cores_line(12.0)
     assert '15 Hz 1.32' in line and 'at 6 us per Lucas-Kanade point: 30 Hz 0.78, 15 Hz 0.66, 10 Hz 0.55' in line
+
+
+def test_imu_cost_row_compares_the_interleaved_rounds():
+    from multicam_ego_motion.bench.imu_cost import TARGET_PCT, ImuCost
+    c = ImuCost(without_ms=[40.0, 38.0], with_ms=[41.0, 40.0])
+    assert abs(c.extra_pct - 100.0 * (40.5 - 39.0) / 39.0) < 1e-9 and c.met
+    assert c.lines()[-1] == '| 2 rounds, interleaved | 40.0, 38.0 | 41.0, 40.0 | +3.8 % |'
+    assert not ImuCost([40.0], [40.0 * (1 + TARGET_PCT / 100) + 0.1]).met

@@ -17,7 +17,7 @@ The VGA bags are generated on first use into --camera-rate-bags and reused; a wo
 mid-run (worker_crash.py: time to restore), and the two-host row (two_hosts.py: M = 2 with the second worker in another
 network namespace, i.e. across UDP and a TCP control channel, beside the one-host M = 2 row;
 skipped with the reason where namespaces cannot be made). --skip-transport-floor, --skip-camera-rate,
---skip-live-vs-offline, --skip-worker-crash and --skip-two-hosts leave out the long parts.
+--skip-live-vs-offline, --skip-worker-crash, --skip-two-hosts and --skip-imu leave out the long parts.
 Writes DIR/bench.md and DIR/model.png.
 """
 import os
@@ -54,6 +54,8 @@ def configure_parser(p):
                         'lockstep and rate mode)')
     p.add_argument('--skip-worker-crash', action='store_true',
                    help='leave out the crash row (a worker killed mid-run: time to restore)')
+    p.add_argument('--skip-imu', action='store_true',
+                   help='leave out the IMU row (the default bag\'s scene with a 200 Hz IMU, fused and not)')
     p.add_argument('--skip-two-hosts', action='store_true',
                    help='leave out the two-host row (M = 2 across two network namespaces; needs root)')
 
@@ -155,6 +157,13 @@ def run(args) -> int:
     from multicam_ego_motion.bench import decode_cost
     lines += [''] + decode_cost.lines()
 
+    # what fusing a 200 Hz IMU costs the estimation, per frame
+    imu = None
+    if not args.skip_imu:
+        from multicam_ego_motion.bench.imu_cost import imu_cost
+        imu = imu_cost(bags_folder, params)
+        lines += [''] + imu.lines()
+
     # 6. track CPU per tracked point (lockstep, M = 2)
     statuses = read_statuses(out / 'lockstep_m2' / 'output')
     runs = [('default bag', statuses)]
@@ -177,6 +186,10 @@ def run(args) -> int:
                             for r in cam_rate.runs if r != CAMERA_RATE_HZ} if cam_rate else None),
         live_offline=live_off.relative if live_off else None,
         skipped_camera_rate='--skip-camera-rate', skipped_live_offline='--skip-live-vs-offline')
+    from multicam_ego_motion.bench.imu_cost import TARGET_PCT
+    targets.append(bench_targets.Target(
+        f'sequential CPU per frame with a 200 Hz IMU fused <= {TARGET_PCT:g} % more',
+        f'{imu.extra_pct:+.1f} %' if imu else 'skipped (--skip-imu)', imu.met if imu else None))
     lines += ['', '## Targets', ''] + bench_targets.table(targets)
 
     # 8. the model, fed with the measured stage times (M = 2 lockstep run)
