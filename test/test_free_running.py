@@ -9,8 +9,9 @@ The loop: 10 s, 320 x 240, fx 200, seed 7 (2.5 m/s at its fastest). Lockstep acc
 asserted against absolute limits (the accuracy suite's loop limits, 0.6 % ATE and 0.7 % final
 drift at 8 Hz, with the margin a faster, shorter run needs) and, for the fixed offsets and the
 mixed rates, against the synchronised run of the same scene. Random phases meet the absolute
-limits; within 20 % of the synchronised run they are on some seeds and not on others (the
-estimator is chaotic: docs/fusion.md gives the figures), so that is not asserted. Rate-mode
+limits; within 20 % of the synchronised run they are on seeds 7-9 and not on 10 and 11 (twice
+theirs: heading lost in the fast turns, where a camera alone is not out-voted; docs/fusion.md
+gives the figures), so that is not asserted. Rate-mode
 accuracy depends on the machine's load: here rate mode must run through and fuse what it
 takes without timeouts.
 """
