@@ -44,6 +44,8 @@ class SequentialResult:
     # bag: what a peer measured on images already in memory is compared with
     frame_cpu_ms: List[float] = field(default_factory=list)
     stage_ms: Dict[str, List[float]] = field(default_factory=lambda: defaultdict(list))
+    imu_cpu_ms: float = 0.0      # process CPU of taking the IMU's samples into the fusion, all of them
+    imu_samples: int = 0
 
 
 def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: dict = None,
@@ -159,7 +161,10 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
         if topic == imu_topic:
             # (in log-time order: a frame is flushed when the next one's first image comes,
             # by when its gyro samples are in, as the general arbiter waits for them)
+            c0 = time.process_time()
             fusion.add_imu(stamp_to_ns(msg.header.stamp), imu_gyro(msg), imu_gyro_covariance(msg))
+            result.imu_cpu_ms += (time.process_time() - c0) * 1e3
+            result.imu_samples += 1
             continue
         if topic in info_topic:
             cam = info_topic[topic]

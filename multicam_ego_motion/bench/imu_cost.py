@@ -1,10 +1,12 @@
-"""What fusing an IMU costs: the sequential pipeline's estimation CPU per frame on the default
-bag's scene with a 200 Hz IMU, fused (`use_imu`) and not, interleaved on this machine (its
-speed drifts within minutes: one pair of runs minutes apart compares two machines). The
-images and the wheel are the default bag's, byte for byte (generate --imu-rate). The CPU is
-the whole run's over its frames: with the IMU fused that includes reading and taking in its
-200 samples a second (deserialising them, ImuBuffer, ImuHealth), as the general arbiter's
-IMU callback does in the graph; without, the same bag's IMU messages are not read.
+"""What fusing an IMU costs: CPU per frame of the estimation on the default bag's scene with a
+200 Hz IMU, fused (`use_imu`) and not, interleaved on this machine (its speed drifts within
+minutes: one pair of runs minutes apart compares two machines). The images and the wheel are
+the default bag's, byte for byte (generate --imu-rate).
+
+The estimation's CPU (the sequential pipeline's frame_cpu_ms: quarters, fusion, feedback), and
+with the IMU also what a graph's general arbiter spends on its samples: taking each into the
+fusion (ImuBuffer, ImuHealth: the pipeline's imu_cpu_ms) and deserialising its message (timed
+here on a sensor_msgs/Imu). Not reading the bag: a robot's IMU comes over DDS.
 """
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,7 +36,7 @@ class ImuCost:
     def lines(self) -> List[str]:
         a = ', '.join(f'{v:.1f}' for v in self.without_ms)
         b = ', '.join(f'{v:.1f}' for v in self.with_ms)
-        return ['| IMU (200 Hz gyro, default bag\'s scene), sequential pipeline CPU per frame '
+        return ['| IMU (200 Hz gyro, default bag\'s scene), estimation CPU per frame (with the IMU: its samples\' intake and deserialisation) '
                 '| without [ms] | with [ms] | more |', '|---|---|---|---:|',
                 f'| {len(self.with_ms)} rounds, interleaved | {a} | {b} | {self.extra_pct:+.1f} % |']
 
@@ -51,9 +53,25 @@ def imu_bag(folder: Path) -> Path:
     return bag
 
 
-def imu_cost(bags_folder: Path, params, rounds: int = ROUNDS) -> ImuCost:
+def imu_deserialise_ms(repeats: int = 2000) -> float:
+    """CPU ms to deserialise one sensor_msgs/Imu (rclpy, as a subscription does), fastest of 3."""
     import time
 
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import Imu
+    msg = Imu()
+    msg.header.frame_id = 'imu_link'
+    data = serialize_message(msg)
+    best = float('inf')
+    for _ in range(3):
+        c0 = time.process_time()
+        for _ in range(repeats):
+            deserialize_message(data, Imu)
+        best = min(best, (time.process_time() - c0) / repeats * 1e3)
+    return best
+
+
+def imu_cost(bags_folder: Path, params, rounds: int = ROUNDS) -> ImuCost:
     import cv2
 
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
@@ -62,6 +80,7 @@ def imu_cost(bags_folder: Path, params, rounds: int = ROUNDS) -> ImuCost:
     from multicam_ego_motion.sequential_pipeline import run_sequential
 
     bag = imu_bag(Path(bags_folder))
+    deserialise_ms = imu_deserialise_ms()
     rig, _ = resolve_rig(Rosbag2Reader(bag), None)
     qp, fp = quarter_params_from(params), fusion_params_from(params)
     threads = cv2.getNumThreads()
@@ -72,9 +91,10 @@ def imu_cost(bags_folder: Path, params, rounds: int = ROUNDS) -> ImuCost:
             for use_imu, into in ((False, out.without_ms), (True, out.with_ms)):
                 print(f'bench: IMU cost, round {r + 1} of {rounds}, {"with" if use_imu else "without"} ...',
                       flush=True)
-                c0 = time.process_time()
                 res = run_sequential(bag, rig, qp, dict(fp, use_imu=use_imu))
-                into.append((time.process_time() - c0) / max(len(res.fused), 1) * 1e3)
+                n = max(len(res.fused), 1)
+                into.append((sum(res.frame_cpu_ms) + res.imu_cpu_ms
+                             + res.imu_samples * deserialise_ms) / n)
     finally:
         cv2.setNumThreads(threads)
     return out
