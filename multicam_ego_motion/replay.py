@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Dict, Optional
 
 from multicam_ego_motion import interrupt
+from multicam_ego_motion.bag.player import STALL_S
 from multicam_ego_motion.errors import UserError
 
 
@@ -41,6 +42,9 @@ def configure_parser(p):
                    help=f'lockstep: frames in flight (default {LOCKSTEP_DEPTH}: the graph pipelines; '
                         'free-running cameras: one more than the cameras; the odometry is the same '
                         'for any N that does not stall)')
+    p.add_argument('--stall-ahead', type=float, default=STALL_S, metavar='S',
+                   help=f'lockstep: a frame not acknowledged after S seconds lets the next one out, '
+                        f'which brings a sample DDS lost at discovery (default {STALL_S:g}; 0: never)')
     p.add_argument('--migrate-every', type=int, default=0, metavar='K',
                    help='debug (lockstep): move one quarter node to the next worker every K frames')
     p.add_argument('--kill-worker-at', type=int, default=None, metavar='N',
@@ -337,7 +341,8 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
               use_wheel=True, ack_timeout=120.0, start_offset=0.0, duration=None,
               migrate_every=0, rebalance=True, logger=print, record_topics=None,
               lockstep_depth=LOCKSTEP_DEPTH, debug_images=False, kill_worker_at=None,
-              sync_window_s=None, remote=None, remote_cpu=False, use_imu=None) -> GraphRun:
+              sync_window_s=None, remote=None, remote_cpu=False, use_imu=None,
+              stall_ahead_s=STALL_S) -> GraphRun:
     """Coordinator + in-process player and recorder: one run of the graph over a bag.
     kill_worker_at (lockstep; the bench's crash row): SIGKILL the last worker once this many
     frames were acknowledged, as a crash would. remote: Coordinator keywords for remote
@@ -421,7 +426,7 @@ def run_graph(bag, out: Path, rig, rig_file, params, workers, lockstep=True, rat
         player = BagPlayer(bag, PlayOptions(
             lockstep=lockstep, lockstep_depth=lockstep_depth, rate=rate, ack_topic='/odom',
             ack_timeout_s=ack_timeout, discovery_s=0.5, progress=None, sync_window_s=window,
-            start_offset_s=start_offset, duration_s=duration,
+            start_offset_s=start_offset, duration_s=duration, stall_ahead_s=stall_ahead_s,
             ack_source=lambda fn: recorder.listen('/odom', fn),
             between_frames=(coordinator.between_frames if kill_worker_at is None
                             else _killing(coordinator, kill_worker_at)) if lockstep else None,
@@ -511,7 +516,7 @@ def run(args) -> int:
                   migrate_every=args.migrate_every, rebalance=not args.no_rebalance,
                   logger=lambda t: print(t, flush=True), lockstep_depth=depth,
                   debug_images=args.debug_images, sync_window_s=args.sync_window, remote=remote,
-                  kill_worker_at=args.kill_worker_at,
+                  kill_worker_at=args.kill_worker_at, stall_ahead_s=args.stall_ahead,
                   use_imu=True if args.imu else (False if args.no_imu else None))
     st = g.coordinator.stats
     print(f'coordinator: {st.migrations} migrations ({st.rebalances} rebalances), '
