@@ -214,7 +214,6 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
     intr = CameraIntrinsics.default(width, height, k1)
     if fx is not None:
         intr = CameraIntrinsics(width, height, fx, fx, intr.cx, intr.cy, intr.distortion)
-    # (a child per stream: a fourth one leaves the first three as they were)
     # (a child per stream: a fifth one leaves the first four as they were)
     texture_seed, noise_seed, wheel_seed, imu_seed, imu_fault_seed = np.random.SeedSequence(seed).spawn(5)
     if imu_rate < 0 or not np.isfinite(imu_rate):
@@ -262,7 +261,10 @@ def generate(scenario, out, seed=0, duration=30.0, rate=30.0, width=640, height=
         rig = replace(rig, imu=ImuMount(IMU_FRAME, np.array(IMU_TRANSLATION), IMU_ROTATION))
     published = (publish(imu, imu_fault, imu_fault_at, np.random.default_rng(imu_fault_seed))
                  if imu is not None else None)
-    to_ns = lambda s: STAMP_EPOCH_NS + np.round(s * 1e9).astype(np.int64)
+
+    def to_ns(seconds):
+        return STAMP_EPOCH_NS + np.round(seconds * 1e9).astype(np.int64)
+
     imu_log_ns = to_ns(published.log_times) if imu is not None else []
     imu_stamps = to_ns(published.stamps) if imu is not None else []
     imu_variances = ImuNoise().sample_variances(imu_rate) if imu is not None else None
