@@ -13,7 +13,7 @@ available and `scale_observed` reports it; until it is wired to correct anything
 scale comes from the wheel prior (when configured) and from the landmarks.
 """
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Dict, List, Mapping, Optional, Tuple
 
 import numpy as np
@@ -162,13 +162,10 @@ class GeneralFusion:
         self.ekf.reinitialize(np.eye(4), np.eye(6) * p['initial_pose_std'] ** 2)
         self.imu = (ImuBuffer(self.rig.imu.rotation, p['imu_gyro_variance'])
                     if self.wants_imu() else None)
-        self.imu_health = ImuHealth(self.rig.imu.frame_id, ImuHealthLimits(
-            gyro_saturation=p['imu_gyro_saturation'], saturation_repeats=p['imu_saturation_repeats'],
-            stuck_samples=p['imu_stuck_samples'], silent_s=p['imu_silent_s'],
-            refused_fraction=p['imu_refused_fraction'], refused_window=p['imu_refused_window'],
-            gyro_bias_max=p['imu_gyro_bias_max'], gyro_disagreement=p['imu_gyro_disagreement'],
-            disagreement_per_rotation=p['imu_disagreement_per_rotation'],
-            disagreement_window_s=p['imu_disagreement_window_s'], recover_s=p['imu_recover_s'])) if self.imu is not None else None
+        # (each limit is the parameter imu_<its name>)
+        self.imu_health = (ImuHealth(self.rig.imu.frame_id, ImuHealthLimits(
+            **{f.name: p[f'imu_{f.name}'] for f in fields(ImuHealthLimits)}))
+            if self.imu is not None else None)
         self.gyro_used = False         # this frame step follows the gyro (imu_health says it may)
         self.last_stamp_ns: Optional[int] = None
         self.wheel_used_ns: Optional[int] = None       # the stamp of the last wheel reading applied
@@ -241,11 +238,10 @@ class GeneralFusion:
 
     def _wheel_update(self, wheel_twist) -> bool:
         axes = (0, 1, 5) if self.params['wheel_planar_only'] else tuple(range(6))
-        if self.gyro_used:
-            # with a gyro, the wheel's speed only: its yaw rate carries the slip's bias (4-8
-            # mrad/s in the generator's), which the filter then took for the gyro's (corridor:
-            # heading 4.8 deg off after 20 s, final drift 5.3 %)
-            axes = tuple(a for a in axes if a < 3)
+        # (with a gyro, the wheel's speed only: its yaw rate carries the slip's bias, 4-8
+        # mrad/s in the generator's, which the filter then took for the gyro's: corridor
+        # heading 4.8 deg off after 20 s, final drift 5.3 %)
+        axes = self._twist_axes(axes)
         used, _ = self.ekf.update_twist(wheel_twist[0], wheel_twist[1], axes, self.params['wheel_gate_chi2'])
         return used
 
@@ -364,13 +360,14 @@ class GeneralFusion:
                 self.ekf.reinitialize(T_f, cov_f, twist_cov=twist_cov)
                 camera_update, d2 = True, 0.0
             else:
+                # the cameras tell the gyro's bias once settled and while the gyro is used
+                # (out, its bias is frozen: it no longer moves the pose)
+                tell_bias = self.gyro_used and self._cameras_settled(stamp_ns)
                 # the innovation test of imu_health: where the fix turns against the gyro
                 residual = (self.ekf.T[:3, :3].T @ self.ekf.pose_innovation(T_f, cov_f)[0][3:]
-                            if self.gyro_used and self._cameras_settled(stamp_ns) and step_s > 0 else None)
-                # (the gyro out: its bias frozen, as it no longer moves the pose)
+                            if tell_bias and step_s > 0 else None)
                 camera_update, d2 = self.ekf.update_pose(T_f, cov_f, p['ekf_gate_chi2'],
-                                                         learn_bias=self._cameras_settled(stamp_ns)
-                                                         and self.gyro_used)
+                                                         learn_bias=tell_bias)
                 if camera_update and residual is not None:
                     # (fixes the gate refuses are the cameras' outliers, not the gyro's)
                     self.imu_health.camera_residual(stamp_ns, residual, step_s,
@@ -514,9 +511,9 @@ class GeneralFusion:
         return used
 
     def _twist_axes(self, axes):
-        """The axes of a twist measured from the tracks of the previous frame pair to use: with
-        a gyro, not its rotation (a frame late, it read the gyro's rate minus the step's change
-        as a bias of 0.09 rad/s at the start of a spin)."""
+        """The axes of a twist measurement (the wheel's, or the tracks' of the previous frame
+        pair) to use: while the gyro is used, not its rotation (the tracks', a frame late, read
+        the gyro's rate minus the step's change as a bias of 0.09 rad/s at the start of a spin)."""
         return tuple(a for a in axes if a < 3) if self.gyro_used else tuple(axes)
 
     def _road_twist(self) -> int:

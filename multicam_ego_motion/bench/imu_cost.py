@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import List
 
-from multicam_ego_motion.bench.accuracy_matrix import BAG_SETTINGS
+from multicam_ego_motion.bench.accuracy_matrix import ensure_bag
 
 IMU_RATE_HZ = 200.0
 ROUNDS = 3
@@ -41,18 +41,6 @@ class ImuCost:
                 f'| {len(self.with_ms)} rounds, interleaved | {a} | {b} | {self.extra_pct:+.1f} % |']
 
 
-def imu_bag(folder: Path) -> Path:
-    """The default bag's scene (loop, seed 7) with an IMU, generated on first use."""
-    bag = folder / f'default_imu{IMU_RATE_HZ:g}'
-    if not (bag / 'metadata.yaml').exists():
-        from multicam_ego_motion.scenarios.generator import generate
-        s = BAG_SETTINGS
-        print(f'bench: generating {bag} ...', flush=True)
-        generate('loop', str(bag), 7, s['duration'], s['rate'], s['width'], s['height'],
-                 s['fx'], 0.0, 4, None, 'zstd', imu_rate=IMU_RATE_HZ)
-    return bag
-
-
 def imu_deserialise_ms(repeats: int = 2000) -> float:
     """CPU ms to deserialise one sensor_msgs/Imu (rclpy, as a subscription does), fastest of 3."""
     import time
@@ -79,7 +67,8 @@ def imu_cost(bags_folder: Path, params, rounds: int = ROUNDS) -> ImuCost:
     from multicam_ego_motion.replay import resolve_rig
     from multicam_ego_motion.sequential_pipeline import run_sequential
 
-    bag = imu_bag(Path(bags_folder))
+    # the default bag's scene (the matrix's loop, seed 7) with the IMU, generated on first use
+    bag = ensure_bag(Path(bags_folder), 'loop', 7, IMU_RATE_HZ)
     deserialise_ms = imu_deserialise_ms()
     rig, _ = resolve_rig(Rosbag2Reader(bag), None)
     qp, fp = quarter_params_from(params), fusion_params_from(params)
