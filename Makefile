@@ -13,7 +13,7 @@ setup: $(READY)
 
 TF2_SRC := $(wildcard resource/tf2_msgs/*.sh resource/tf2_msgs/*.txt resource/tf2_msgs/*.xml resource/tf2_msgs/msg/*.msg)
 
-NATIVE_SRC := pyproject.toml $(wildcard camera_pose_nodes/native/*.cpp)
+NATIVE_SRC := pyproject.toml $(wildcard camera_pose_nodes/native/*.cpp arbiter_node/native/*.cpp)
 
 $(READY): requirements.txt setup.py setup.cfg $(TF2_SRC) $(NATIVE_SRC)
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)

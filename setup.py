@@ -45,6 +45,14 @@ quarter_kernels = Pybind11Extension(
     extra_compile_args=['-O2', '-ffp-contract=off', '-isystem', eigen_include()],
 )
 
+# The general arbiter's per-frame rig-motion refinement (arbiter_node/rig_motion_fit.py).
+rig_motion_kernel = Pybind11Extension(
+    'arbiter_node._rig_motion_kernel',
+    ['arbiter_node/native/rig_motion_kernel.cpp'],
+    cxx_std=17,
+    extra_compile_args=['-O2', '-isystem', eigen_include()],
+)
+
 setup(
     name=package_name,
     version='0.1.0',
@@ -57,7 +65,7 @@ setup(
         # `ros2 launch multicam_ego_motion multicam_ego_motion.launch.py`
         ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
     ],
-    ext_modules=[quarter_kernels],
+    ext_modules=[quarter_kernels, rig_motion_kernel],
     install_requires=['setuptools'],
     zip_safe=False,
     maintainer='multicam_ego_motion developers',

@@ -240,25 +240,45 @@ class BodyEKF:
             return False, d2
         return self._update(z, H, sub), d2
 
-    def update_gyro(self, rate: Sequence[float], cov: np.ndarray,
-                    gate_chi2: float = float('inf')) -> Tuple[bool, float]:
-        """A gyro's mean rate over the last step, in base_link (rad/s, 3x3 covariance): it
-        measures w + b_g. Needs gyro_bias=True."""
+    def _gyro_measurement(self, what: str, value, cov):
+        """(z (3, 1), conditioned cov) of a 3-vector measurement, None when not finite."""
         if not self.has_gyro_bias:
-            raise ValueError('update_gyro: this filter has no gyro bias state (gyro_bias=False)')
-        z = np.asarray(rate, float).reshape(3, 1)
+            raise ValueError(f'{what}: this filter has no gyro bias state (gyro_bias=False)')
+        z = np.asarray(value, float).reshape(3, 1)
         cov = np.asarray(cov, float)
         if not (np.all(np.isfinite(z)) and np.all(np.isfinite(cov))):
-            return False, float('inf')
-        cov = condition_covariance(cov, max_eig=MAX_VARIANCE)
-        H = np.zeros((3, self.dim))
-        H[:, 9:12] = np.eye(3)
-        H[:, BIAS] = np.eye(3)
+            return None
+        return z, condition_covariance(cov, max_eig=MAX_VARIANCE)
+
+    def _update_gated(self, z, H, cov, gate_chi2: float) -> Tuple[bool, float]:
         y = (z - H @ self.kf.x)[:, 0]
         d2 = mahalanobis2(y, H @ self.kf.P @ H.T + cov)
         if d2 > gate_chi2:
             return False, d2
         return self._update(z, H, cov), d2
+
+    def update_gyro(self, rate: Sequence[float], cov: np.ndarray,
+                    gate_chi2: float = float('inf')) -> Tuple[bool, float]:
+        """A gyro's mean rate over the last step, in base_link (rad/s, 3x3 covariance): it
+        measures w + b_g. Needs gyro_bias=True."""
+        m = self._gyro_measurement('update_gyro', rate, cov)
+        if m is None:
+            return False, float('inf')
+        H = np.zeros((3, self.dim))
+        H[:, 9:12] = np.eye(3)
+        H[:, BIAS] = np.eye(3)
+        return self._update_gated(m[0], H, m[1], gate_chi2)
+
+    def update_gyro_bias(self, bias: Sequence[float], cov: np.ndarray,
+                         gate_chi2: float = float('inf')) -> Tuple[bool, float]:
+        """A direct measurement of the gyro bias (rad/s, 3x3 covariance): the gyro's mean rate
+        over a step less the rate the cameras' tracks turned by over it. Needs gyro_bias=True."""
+        m = self._gyro_measurement('update_gyro_bias', bias, cov)
+        if m is None:
+            return False, float('inf')
+        H = np.zeros((3, self.dim))
+        H[:, BIAS] = np.eye(3)
+        return self._update_gated(m[0], H, m[1], gate_chi2)
 
     def _schmidt_update(self, y, H, Rm, frozen: slice) -> bool:
         """Kalman update with the `frozen` states' gain set to zero (Joseph form, which

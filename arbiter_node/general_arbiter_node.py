@@ -150,6 +150,9 @@ class GeneralArbiterNode(Node):
             return None
         level, message, values = health.status()
         values['imu_publishers'] = self.imu_sub.get_publisher_count() if self.imu_sub is not None else 0
+        bias = self.fusion.ekf.gyro_bias
+        values['gyro_bias_rad_s'] = ' '.join(f'{b:+.5f}' for b in bias)
+        values['gyro_bias_fixes'] = self.fusion.bias_fixes     # measured from the tracks
         if (health.state, health.problem) != self.imu_said:
             self.imu_said = (health.state, health.problem)
             # (a call site per severity: rclpy refuses one site that changes its severity)

@@ -25,7 +25,7 @@ from arbiter_node.imu_buffer import ImuBuffer
 from arbiter_node.imu_health import ImuHealth, ImuHealthLimits
 from arbiter_node.quarter_fusion import CHI2_6DOF_999, information_fusion
 from arbiter_node.time_shift import shift_pose
-from arbiter_node.rig_motion_fit import fit_rig_motion
+from arbiter_node.rig_motion_fit import fit_rig_motion, refine_rig_motion
 from arbiter_node.rig_scale import RigScaleResult, relative_motion, scale_correction, solve_rig_translation
 from arbiter_node.road_motion import body_twist, camera_motion, rig_motion
 from arbiter_node.scale_state import ScaleState, metric_source
@@ -58,7 +58,7 @@ PARAMETERS = {
     'lost_timeout_s': (2.0, 'without camera updates or wheel prior for this long, the state is lost', 0.1, 600.0),
     'arc_integration': (True, 'EKF prediction moves along the arc of the twist (constant body twist), not along the heading at the start of the step', None, None),
     'wheel_planar_only': (True, 'use only vx, vy, wz of the wheel twist (a wheeled base measures nothing else)', None, None),
-    'use_imu': (False, 'fuse the gyro of the rig\'s IMU (rig file `imu`, or its frame in /tf_static) when one publishes: the rotation between frames follows it, less its bias, which the EKF estimates. Off by default: it holds spins without wheel (heading 17 -> 1.3 deg) but the accuracy matrix with the wheel is worse with it (mean final drift 0.56 against 0.32 %: docs/fusion.md)', None, None),
+    'use_imu': (False, 'fuse the gyro of the rig\'s IMU (rig file `imu`, or its frame in /tf_static) when one publishes: the rotation between frames follows it, less its bias, which the EKF estimates. Off by default: it holds spins without wheel (heading 17 -> 1.2 deg) but the accuracy matrix with the wheel is not yet better with it (mean final drift 0.342 against 0.324 %: docs/fusion.md)', None, None),
     'imu_gyro_variance': (1e-5, 'a gyro sample\'s variance per axis ((rad/s)^2) when its message has no covariance', 1e-12, 1.0),
     'gyro_bias_std': (0.01, 'the gyro bias\'s prior std (rad/s; MEMS: a few tenths of a degree per second)', 1e-6, 1.0),
     'gyro_bias_walk': (1e-4, 'the gyro bias\'s random walk (rad/s/sqrt(s))', 1e-9, 1.0),
@@ -74,6 +74,10 @@ PARAMETERS = {
     'imu_disagreement_window_s': (1.0, 'IMU health: ... over this long (s)', 0.1, 600.0),
     'imu_recover_s': (2.0, 'IMU health: after a problem, the gyro is used again once none was seen for this long (s)', 0.0, 3600.0),
     'gyro_bias_settle_s': (3.0, 'the cameras\' fixes tell the gyro bias only from this long after the first one (while their maps form they are off by tenths of a degree between frames, which the filter took for a 4 mrad/s bias)', 0.0, 600.0),
+    'gyro_bias_from_tracks': (True, "with the gyro: every frame, the rig's rotation between the two previous frames fitted to all cameras' tracks at once (rig_motion_fit.refine_rig_motion, from the gyro's rotation) measures the gyro bias directly, as the gyro's mean rate less that rotation's; without it the bias is learnt from the fused poses only, and their update took the turns' angular acceleration for bias (docs/fusion.md)", None, None),
+    'gyro_bias_tracks_min_travel': (1.0, "gyro_bias_from_tracks: only while the body's speed is at least this times its turn rate times the longest camera lever arm (m/s per m/s): in a spin in place every camera moves sideways, along its epipolar lines, where a yaw error does not show", 0.0, 100.0),
+    'gyro_bias_tracks_inflation': (2.0, "gyro_bias_from_tracks: the fit's rotation covariance times this (a margin: on the generator's scenes the fits' rotations are within 0.05 mrad/s of the truth after a spin, where they predict 0.3)", 1.0, 1e4),
+    'gyro_bias_tracks_gate_chi2': (11.34, "gyro_bias_from_tracks: chi-square (3 dof, 99 %) gate of that bias measurement against the filter's bias", 1.0, 1e6),
     'planar_motion': (True, 'the base moves on the rig\'s level floor (rig floor_z, not with floor_level false; robot_localization calls it two_d_mode): every frame measures its vz, wx, wy as 0', None, None),
     'planar_twist_std': (1e-3, 'std of that planar-motion measurement of vz (m/s), wx and wy (rad/s)', 1e-6, 10.0),
     'wheel_gate_chi2': (1e3, 'chi-square gate of the wheel twist against the EKF twist (slip detection)', 1.0, 1e9),
@@ -167,6 +171,7 @@ class GeneralFusion:
             **{f.name: p[f'imu_{f.name}'] for f in fields(ImuHealthLimits)}))
             if self.imu is not None else None)
         self.gyro_used = False         # this frame step follows the gyro (imu_health says it may)
+        self.bias_fixes = 0            # gyro bias measurements from the tracks used (diagnostics)
         self.last_stamp_ns: Optional[int] = None
         self.wheel_used_ns: Optional[int] = None       # the stamp of the last wheel reading applied
         self.last_support_ns: Optional[int] = None     # last camera update or wheel prior
@@ -300,6 +305,7 @@ class GeneralFusion:
         if self.imu_health is not None:
             # A bad IMU (imu_health): this step without the gyro, as without an IMU; the
             # bias estimate is passed even while frozen, so a drifted one keeps it out.
+            self._gyro_bias_from_tracks(stamp_ns)
             self.gyro_used = self.imu_health.check(stamp_ns, self.ekf.gyro_bias)
         if wheel_stamp_ns is not None:
             if self.wheel_used_ns is not None and wheel_stamp_ns <= self.wheel_used_ns:
@@ -361,11 +367,14 @@ class GeneralFusion:
                 camera_update, d2 = True, 0.0
             else:
                 # the cameras tell the gyro's bias once settled and while the gyro is used
-                # (out, its bias is frozen: it no longer moves the pose)
-                tell_bias = self.gyro_used and self._cameras_settled(stamp_ns)
+                # (out, its bias is frozen: it no longer moves the pose); with
+                # gyro_bias_from_tracks the tracks do, not the fixes (a spin's fixes, off by
+                # tenths of a degree, pulled the bias the wrong way)
+                settled = self.gyro_used and self._cameras_settled(stamp_ns)
+                tell_bias = settled and not self._bias_from_tracks()
                 # the innovation test of imu_health: where the fix turns against the gyro
                 residual = (self.ekf.T[:3, :3].T @ self.ekf.pose_innovation(T_f, cov_f)[0][3:]
-                            if tell_bias and step_s > 0 else None)
+                            if settled and step_s > 0 else None)
                 camera_update, d2 = self.ekf.update_pose(T_f, cov_f, p['ekf_gate_chi2'],
                                                          learn_bias=tell_bias)
                 if camera_update and residual is not None:
@@ -391,7 +400,7 @@ class GeneralFusion:
         # (only where the cameras gave nothing: with their fix as well, the loop's scale read
         # 6 % short; the tracks' twist and the cameras' poses come from the same images)
         tracks_update = (not camera_update and wheel_twist is None
-                         and p['start_from_tracks'] and self.wants_bearings() and not self.wheel_seen
+                         and p['start_from_tracks'] and self._bearings_for_scale() and not self.wheel_seen
                          and self._twist_from_tracks())
         if tracks_update:
             self.has_tracked = True
@@ -520,7 +529,7 @@ class GeneralFusion:
         """road_twist: every camera's motion between the two previous frames (this frame's
         tracks may still be on their way) as a twist measurement. Returns how many were used."""
         p = self.params
-        if not (p['road_twist'] and self.rig.road_scale and self.wants_bearings()) or len(self.frames) < 2:
+        if not (p['road_twist'] and self.rig.road_scale and self._bearings_for_scale()) or len(self.frames) < 2:
             return 0
         (s0, c0), (s1, c1) = self.frames
         dt = (s1 - s0) * 1e-9
@@ -553,19 +562,69 @@ class GeneralFusion:
         ok, _ = self.ekf.update_twist(twist, cov, axes=axes, gate_chi2=p['ekf_gate_chi2'])
         return int(ok)
 
-    def wants_bearings(self) -> bool:
-        """Whether the quarters' tracks can tell this fusion anything: the scale is measured
-        from them only without stereo and floor (and wheel, once one is seen)."""
+    def _bearings_for_scale(self) -> bool:
+        """Whether the scale is measured from the quarters' tracks: without stereo and floor
+        (and wheel, once one is seen), or over a road."""
         if self.rig.road_scale:
             return bool(self.params['road_scale'])
         return bool(self.params['rig_rotation_scale'] and self.params['scale_from_tracks']
                     and metric_source(self.rig, False) is None)
 
+    def _bias_from_tracks(self) -> bool:
+        return self.wants_imu() and bool(self.params['gyro_bias_from_tracks'])
+
+    def wants_bearings(self) -> bool:
+        """Whether the quarters' tracks can tell this fusion anything: the scale (above) or,
+        with a gyro, its bias (gyro_bias_from_tracks)."""
+        return self._bearings_for_scale() or self._bias_from_tracks()
+
     def add_bearings(self, camera: str, quarter: int, stamp_ns: int, ids, xy, sigma):
         """A quarter's tracks at one of its frames (normalised points and their std), for the
-        scale from the rig's motion; taken from the frame after it on."""
-        if self.wants_bearings() and not self.wheel_seen:
+        scale from the rig's motion and the gyro's bias; taken from the frame after it on."""
+        if (self._bearings_for_scale() and not self.wheel_seen) or self._bias_from_tracks():
             self.scale.add_bearings(camera, quarter, stamp_ns, ids, xy, sigma)
+
+    def _gyro_bias_from_tracks(self, stamp_ns: int) -> bool:
+        """gyro_bias_from_tracks: the rig's rotation between the two previous frames from all
+        cameras' tracks (this frame's may still be on their way) against the gyro's mean rate
+        over the same frames: a measurement of the bias alone, from image measurements alone.
+        Why not the bias from the fused poses: their errors in a spin (tenths of a degree
+        between frames while the quarters' maps break) went into it (spin_then_drive seed 8:
+        +1.5 mrad/s where the truth is -3.7). Once the cameras have settled
+        (gyro_bias_settle_s)."""
+        p = self.params
+        if (not (self.gyro_used and self._bias_from_tracks() and self._cameras_settled(stamp_ns))
+                or len(self.frames) < 2):
+            return False
+        (s0, c0), (s1, c1) = self.frames
+        dt = (s1 - s0) * 1e-9
+        gyro = self.imu.mean_rate(s0, s1) if dt > 0.0 else None
+        if gyro is None:
+            return False
+        cams = self.scale.tracks_between(c0, c1, s0, s1)
+        if not cams:
+            return False
+        rate, rate_cov = gyro
+        # Only while the body travels more than its cameras swing on their lever arms: in a
+        # spin in place every camera moves sideways, along its epipolar lines, where a yaw
+        # error does not show (spin_then_drive: fits 0.5-8 % off the rate, all one way)
+        lever = max(float(np.linalg.norm(c.centre)) for c in cams)
+        speed = float(np.linalg.norm(self.ekf.twist[:3]))
+        if speed < p['gyro_bias_tracks_min_travel'] * float(np.linalg.norm(rate - self.ekf.gyro_bias)) * lever:
+            return False
+        t0 = self.ekf.twist[:3] * dt
+        if np.linalg.norm(t0) < 1e-3:
+            t0 = np.array([1e-2, 0.0, 0.0])      # a start the fit can move from (not zero)
+        # from the gyro's own rotation, not less the filter's bias: a measurement of the bias
+        # that does not start from the estimate it corrects
+        fit = refine_rig_motion(se3.rotvec_to_R(rate * dt), t0, cams)
+        if not fit.ok:
+            return False
+        bias = rate - se3.R_to_rotvec(fit.R) / dt
+        cov = p['gyro_bias_tracks_inflation'] * fit.covariance[:3, :3] / dt ** 2 + rate_cov
+        used, _ = self.ekf.update_gyro_bias(bias, cov, p['gyro_bias_tracks_gate_chi2'])
+        self.bias_fixes += int(used)
+        return used
 
     @property
     def map_scale_command(self):

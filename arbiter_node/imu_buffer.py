@@ -13,11 +13,13 @@ the samples do not cover (a gap longer than `max_gap_s`) has no rate.
 """
 import math
 from bisect import bisect_right
-from typing import List, Optional, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
 from multicam_ego_motion.geometry import se3
+
+MEANS_KEPT = 4                 # mean_rate's results remembered (the latest steps)
 
 
 class ImuBuffer:
@@ -33,6 +35,7 @@ class ImuBuffer:
         self.stamps: List[int] = []
         self.rates: List[tuple] = []               # rad/s in the IMU's frame
         self.variances: List[float] = []           # per axis, of one sample
+        self._means: Dict[Tuple[int, int], Tuple[np.ndarray, np.ndarray]] = {}   # mean_rate's latest
 
     def add(self, stamp_ns: int, gyro, gyro_covariance=None) -> Optional[str]:
         """One sample (gyro in the IMU's frame, rad/s; its 3x3 covariance or None). Returns
@@ -70,6 +73,9 @@ class ImuBuffer:
         samples do not cover the step."""
         if t1_ns <= t0_ns or not self.stamps:
             return None
+        key = (int(t0_ns), int(t1_ns))
+        if key in self._means:
+            return self._means[key]
         i = bisect_right(self.stamps, t0_ns) - 1      # the sample in force at t0
         if i < 0 or self.stamps[-1] < t1_ns:
             return None
@@ -88,4 +94,10 @@ class ImuBuffer:
         dt = (t1_ns - t0_ns) * 1e-9
         rate = se3.R_to_rotvec(dR) / dt
         # the mean of `used` samples' white noise
-        return rate, np.eye(3) * (var / used) / used
+        out = rate, np.eye(3) * (var / used) / used
+        # (a step covered stays as it is: samples come in order. The fusion asks for each
+        # step twice: its prediction, and a frame later the gyro bias from the tracks)
+        self._means[key] = out
+        while len(self._means) > MEANS_KEPT:
+            del self._means[next(iter(self._means))]
+        return out

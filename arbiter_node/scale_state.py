@@ -204,20 +204,25 @@ class ScaleState:
                 if by_camera:
                     cams.append(None)
                 continue
-            xa, xb, sg = [], [], []
-            for q in sorted(set(qa) & set(qb)):
-                ia, pa, sa = qa[q]
-                ib, pb, sb = qb[q]
+            quarters = sorted(set(qa) & set(qb))
+            if quarters:
+                # one match for the camera: each quarter's ids (unique within it) made unique
+                # across quarters (16 small matches a frame cost more than the fits on them)
+                ia, pa, sa = self._stacked(qa, quarters)
+                ib, pb, sb = self._stacked(qb, quarters)
                 _, ja, jb = np.intersect1d(ia, ib, assume_unique=True, return_indices=True)
-                xa.append(pa[ja])
-                xb.append(pb[jb])
-                sg.append(np.maximum(sa[ja], sb[jb]))
-            if xa:
-                cams.append(CameraTracks(cam.rotation, cam.translation, np.concatenate(xa),
-                                         np.concatenate(xb), np.concatenate(sg)))
+                cams.append(CameraTracks(cam.rotation, cam.translation, pa[ja], pb[jb],
+                                         np.maximum(sa[ja], sb[jb])))
             elif by_camera:
                 cams.append(None)
         return cams
+
+    @staticmethod
+    def _stacked(per_quarter, quarters):
+        """(ids made unique across quarters, points, stds) of the quarters' tracks at a frame."""
+        ids = [np.asarray(per_quarter[q][0], np.int64) + (int(q) << 40) for q in quarters]
+        return (np.concatenate(ids), np.concatenate([per_quarter[q][1] for q in quarters]),
+                np.concatenate([per_quarter[q][2] for q in quarters]))
 
     def _observe_tracks(self):
         """The rig's metric motion from the tracks between two earlier fused frames a and b

@@ -46,6 +46,10 @@ class SequentialResult:
     stage_ms: Dict[str, List[float]] = field(default_factory=lambda: defaultdict(list))
     imu_cpu_ms: float = 0.0      # process CPU of taking the IMU's samples into the fusion, all of them
     imu_samples: int = 0
+    gyro_bias: List[object] = field(default_factory=list)   # the fusion's estimate per frame (None without a gyro)
+    gyro_bias_fixes: int = 0     # of them measured from the tracks (general_fusion gyro_bias_from_tracks)
+    bearing_messages: int = 0    # the quarters' track messages a graph would send (bearings topics)
+    bearing_points: int = 0      # ... and the tracks in them
 
 
 def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: dict = None,
@@ -61,7 +65,8 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
                         f'({", ".join(c.input_topic for c in rig.cameras)})')
     qp = QuarterParams(**(quarter_params or {}))
     fusion = GeneralFusion(rig, fusion_params or {})
-    sends_bearings = rig.sends_bearings     # as the quarter nodes
+    # as the quarter nodes publish them and the general arbiter subscribes
+    sends_bearings = rig.sends_bearings and fusion.wants_bearings()
     topics = [c.input_topic for c in present] + [c.camera_info_topic for c in present
                                                   if c.camera_info_topic in reader.topics]
     wheel_topic = '/wheel/odom' if use_wheel and '/wheel/odom' in reader.topics else None
@@ -99,7 +104,10 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             if sends_bearings:
                 # as the quarter nodes publish them; fused from the next frame on
                 for q in estimators[name]:
-                    fusion.add_bearings(name, q.quarter, frame_stamps[name], *q.bearings())
+                    ids, xy, sigma = q.bearings()
+                    fusion.add_bearings(name, q.quarter, frame_stamps[name], ids, xy, sigma)
+                    result.bearing_messages += 1
+                    result.bearing_points += len(ids)
             for e in ests:
                 result.quarters[e.source].append(e)
                 for k, v in e.stage_ms.items():
@@ -139,6 +147,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
                     if q.takes_feedback(stamp):
                         q.apply_fused_pose(stamp, feedback.T_odom_base, feedback.covariance, gray_b)
         result.fused.append(fused)
+        result.gyro_bias.append(fusion.ekf.gyro_bias)
         result.frame_ms.append((time.perf_counter() - t0) * 1e3)
         result.frame_cpu_ms.append((time.process_time() - c0) * 1e3)
         frame.clear()
@@ -187,4 +196,5 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
         frame[cam.name] = msg
     if not (max_frames and len(result.fused) >= max_frames):
         flush()
+    result.gyro_bias_fixes = fusion.bias_fixes
     return result

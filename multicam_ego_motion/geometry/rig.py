@@ -123,9 +123,10 @@ class Rig:
 
     @property
     def sends_bearings(self) -> bool:
-        """Whether the quarters publish their tracks for the general arbiter's scale: without
-        a metric source of the rig's own, and over a road (road_scale)."""
-        return self.metric_source is None or self.road_scale
+        """Whether the quarters publish their tracks for the general arbiter: for its scale
+        without a metric source of the rig's own and over a road (road_scale), and for the
+        gyro's bias with an IMU (general_fusion gyro_bias_from_tracks)."""
+        return self.metric_source is None or self.road_scale or self.imu is not None
 
     def stereo_partners(self, name: str) -> List[str]:
         """The cameras named with `name` in a stereo pair, in pair order."""
