@@ -73,8 +73,8 @@ PARAMETERS = {
     'imu_disagreement_per_rotation': (0.05, 'IMU health: ... plus this much per radian the body turned (the cameras\' own rotation error grows with the rotation: 4 % in the 10 s loop\'s turns)', 0.0, 1.0),
     'imu_disagreement_window_s': (1.0, 'IMU health: ... over this long (s)', 0.1, 600.0),
     'imu_recover_s': (2.0, 'IMU health: after a problem, the gyro is used again once none was seen for this long (s)', 0.0, 3600.0),
-    'gyro_bias_settle_s': (3.0, 'the cameras\' fixes tell the gyro bias only from this long after the first one (while their maps form they are off by tenths of a degree between frames, which the filter took for a 4 mrad/s bias)', 0.0, 600.0),
-    'gyro_bias_from_tracks': (True, "with the gyro: every frame, the rig's rotation between the two previous frames fitted to all cameras' tracks at once (rig_motion_fit.refine_rig_motion, from the gyro's rotation) measures the gyro bias directly, as the gyro's mean rate less that rotation's; without it the bias is learnt from the fused poses only, and their update took the turns' angular acceleration for bias (docs/fusion.md)", None, None),
+    'gyro_bias_settle_s': (3.0, 'the cameras tell the gyro bias (their tracks, gyro_bias_from_tracks, else their fixes) only from this long after the first fix (while the maps form the fixes are off by tenths of a degree between frames, which the filter took for a 4 mrad/s bias)', 0.0, 600.0),
+    'gyro_bias_from_tracks': (True, "with the gyro: every frame, the rig's rotation between the two previous frames fitted to all cameras' tracks at once (rig_motion_fit.refine_rig_motion, from the gyro's rotation) measures the gyro bias directly, as the gyro's mean rate less that rotation's, and the fused poses no longer tell it (a spin's fixes, off by tenths of a degree, pulled it the wrong way: docs/fusion.md)", None, None),
     'gyro_bias_tracks_min_travel': (1.0, "gyro_bias_from_tracks: only while the body's speed is at least this times its turn rate times the longest camera lever arm (m/s per m/s): in a spin in place every camera moves sideways, along its epipolar lines, where a yaw error does not show", 0.0, 100.0),
     'gyro_bias_tracks_inflation': (2.0, "gyro_bias_from_tracks: the fit's rotation covariance times this (a margin: on the generator's scenes the fits' rotations are within 0.05 mrad/s of the truth after a spin, where they predict 0.3)", 1.0, 1e4),
     'gyro_bias_tracks_gate_chi2': (11.34, "gyro_bias_from_tracks: chi-square (3 dof, 99 %) gate of that bias measurement against the filter's bias", 1.0, 1e6),
@@ -303,9 +303,11 @@ class GeneralFusion:
         wheel_used = False
         camera_stamps = {n: e.stamp_ns for n, e in camera_estimates.items()}
         if self.imu_health is not None:
+            # (the previous frame pair's bias, while gyro_used still says whether the gyro
+            # carried that pair)
+            self._gyro_bias_from_tracks(stamp_ns)
             # A bad IMU (imu_health): this step without the gyro, as without an IMU; the
             # bias estimate is passed even while frozen, so a drifted one keeps it out.
-            self._gyro_bias_from_tracks(stamp_ns)
             self.gyro_used = self.imu_health.check(stamp_ns, self.ekf.gyro_bias)
         if wheel_stamp_ns is not None:
             if self.wheel_used_ns is not None and wheel_stamp_ns <= self.wheel_used_ns:

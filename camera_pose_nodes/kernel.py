@@ -7,7 +7,9 @@ triangulation with its checks) in one call instead of thousands of small numpy o
 keep the same filter and map state, so a state handed over from one runs on the other.
 
 The native kernel is used when it is built, the numpy one otherwise; the environment variable
-EGO_MOTION_KERNEL=numpy|native forces one (read when a PoseEKF or LandmarkMap is made).
+EGO_MOTION_KERNEL=numpy|native forces one (read when a PoseEKF or LandmarkMap is made);
+EGO_MOTION_KERNEL=numpy also puts the general arbiter's rig-motion refinement
+(arbiter_node/rig_motion_fit, its own native kernel) on its numpy path.
 """
 import os
 
