@@ -502,10 +502,7 @@ class GeneralFusion:
             return False
         cams = self.scale.tracks_between(c0, c1, s0, s1)
         twist = self.ekf.twist
-        t0 = twist[:3] * dt
-        if np.linalg.norm(t0) < 1e-3:
-            t0 = np.array([1e-2, 0.0, 0.0])      # a start the fit can move from (not zero)
-        fit = fit_rig_motion(se3.rotvec_to_R(twist[3:] * dt), t0, cams)
+        fit = fit_rig_motion(se3.rotvec_to_R(twist[3:] * dt), self._fit_start(dt), cams)
         self.scale.last_fit = fit
         if not fit.ok:
             return False
@@ -520,6 +517,13 @@ class GeneralFusion:
         used, _ = self.ekf.update_twist(np.r_[fit.t, rotvec] / dt, 4.0 * cov / dt ** 2,
                                         axes=self._twist_axes((0, 1, 2, 3, 4, 5)))
         return used
+
+    def _fit_start(self, dt: float) -> np.ndarray:
+        """The filter's translation over dt, a start for the rig-motion fits."""
+        t0 = self.ekf.twist[:3] * dt
+        if np.linalg.norm(t0) < 1e-3:
+            t0 = np.array([1e-2, 0.0, 0.0])      # a start the fit can move from (not zero)
+        return t0
 
     def _twist_axes(self, axes):
         """The axes of a twist measurement (the wheel's, or the tracks' of the previous frame
@@ -614,12 +618,9 @@ class GeneralFusion:
         speed = float(np.linalg.norm(self.ekf.twist[:3]))
         if speed < p['gyro_bias_tracks_min_travel'] * float(np.linalg.norm(rate - self.ekf.gyro_bias)) * lever:
             return False
-        t0 = self.ekf.twist[:3] * dt
-        if np.linalg.norm(t0) < 1e-3:
-            t0 = np.array([1e-2, 0.0, 0.0])      # a start the fit can move from (not zero)
         # from the gyro's own rotation, not less the filter's bias: a measurement of the bias
         # that does not start from the estimate it corrects
-        fit = refine_rig_motion(se3.rotvec_to_R(rate * dt), t0, cams)
+        fit = refine_rig_motion(se3.rotvec_to_R(rate * dt), self._fit_start(dt), cams)
         if not fit.ok:
             return False
         bias = rate - se3.R_to_rotvec(fit.R) / dt

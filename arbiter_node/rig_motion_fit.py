@@ -127,58 +127,39 @@ HUBER_SIGMAS = 1.0
 _JACOBIAN_STEP = 1e-7
 
 
-def _essential_batch(Rs: np.ndarray, T: np.ndarray, c: CameraTracks) -> np.ndarray:
-    """One camera's essential matrices (K, 3, 3) for body motions Rs (K, 3, 3), T (K, 3)."""
-    Rc = c.R_base_cam
-    tc = (Rs @ c.centre + T - c.centre) @ Rc                 # Rc^T (R c + t - c), per row
-    K = np.zeros((len(T), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -tc[:, 2], tc[:, 1], -tc[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = tc[:, 2], -tc[:, 1], tc[:, 0]
-    return K @ (Rc.T @ Rs @ Rc)
-
-
-def _residuals_and_jacobian(x, R0, cams):
-    """Sampson residuals at x and their forward-difference Jacobian, all seven motions at once."""
-    X = np.repeat(x[None], 7, axis=0)
-    X[1:] += np.eye(6) * _JACOBIAN_STEP
-    Rs = np.stack([se3.rotvec_to_R(v[:3]) for v in X]) @ R0
-    rs, Js = [], []
-    for c, ha, hb in cams:
-        E = _essential_batch(Rs, X[:, 3:], c)
-        Exb = hb @ E.transpose(0, 2, 1)
-        Eta = ha @ E
-        den = np.sqrt(Exb[..., 0] ** 2 + Exb[..., 1] ** 2 + Eta[..., 0] ** 2 + Eta[..., 1] ** 2 + 1e-30) * c.sigma
-        r = (Exb * ha).sum(axis=2) / den
-        rs.append(r[0])
-        Js.append(((r[1:] - r[0]) / _JACOBIAN_STEP).T)
-    return np.concatenate(rs), np.concatenate(Js)
+def _residuals_and_jacobian(x, R0, cameras):
+    """_residuals at x and their forward-difference Jacobian (the native kernel's steps)."""
+    r = _residuals(x, R0, cameras)
+    J = np.empty((len(r), 6))
+    for k in range(6):
+        xk = x.copy()
+        xk[k] += _JACOBIAN_STEP
+        J[:, k] = (_residuals(xk, R0, cameras) - r) / _JACOBIAN_STEP
+    return r, J
 
 
 def _refine_numpy(R0, t0, cameras, iterations, huber, inlier_sigmas, min_points):
-    cams = [(c, np.column_stack([c.xa, np.ones(len(c.xa))]), np.column_stack([c.xb, np.ones(len(c.xb))]))
-            for c in cameras]
-    n = sum(len(c.xa) for c in cameras)
-    if n < min_points:
-        return False, None, None, None, 0, float('nan'), f'{n} tracks in both frames; need {min_points}'
+    """The native kernel's refinement in numpy: (ok, R, t, covariance, n_inliers, rms, reason)."""
+    failed = lambda reason: (False, None, None, None, 0, float('nan'), reason)
     x = np.r_[np.zeros(3), t0]
     for _ in range(iterations):
-        r, J = _residuals_and_jacobian(x, R0, cams)
+        r, J = _residuals_and_jacobian(x, R0, cameras)
         w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-12))
         try:
             x = x - np.linalg.solve(J.T @ (J * w[:, None]) + 1e-12 * np.eye(6), J.T @ (w * r))
         except np.linalg.LinAlgError:
-            return False, None, None, None, 0, float('nan'), 'singular fit'
+            return failed('singular fit')
         if not np.all(np.isfinite(x)):
-            return False, None, None, None, 0, float('nan'), 'not finite'
-    r, J = _residuals_and_jacobian(x, R0, cams)
+            return failed('not finite')
+    r, J = _residuals_and_jacobian(x, R0, cameras)
     inl = np.abs(r) < inlier_sigmas
     if inl.sum() < min_points:
-        return False, None, None, None, 0, float('nan'), f'{int(inl.sum())} inliers; need {min_points}'
+        return failed(f'{int(inl.sum())} inliers; need {min_points}')
     rms = float(np.sqrt(np.mean(r[inl] ** 2)))
     try:
         cov = np.linalg.inv(J[inl].T @ J[inl]) * rms ** 2
     except np.linalg.LinAlgError:
-        return False, None, None, None, 0, float('nan'), 'singular fit'
+        return failed('singular fit')
     return True, se3.rotvec_to_R(x[:3]) @ R0, x[3:], cov, int(inl.sum()), rms, ''
 
 
@@ -187,33 +168,30 @@ def refine_rig_motion(R0: np.ndarray, t0: np.ndarray, cameras: List[CameraTracks
                       inlier_sigmas: float = 3.0) -> RigMotionFit:
     """fit_rig_motion's problem by a fixed few Gauss-Newton steps (Huber weights) from a start
     near the answer (a gyro's rotation): about 0.1 ms for 400 tracks with the native kernel
-    (1 ms in numpy) where the trust-region fit takes 12 ms. The rotation is what it is for (relative_std is not
-    computed: infinite). The native kernel when built, else numpy (EGO_MOTION_KERNEL=numpy
-    forces it); both the same steps."""
+    (3 ms in numpy) where the trust-region fit takes 12 ms. The rotation is what it is for
+    (relative_std is not computed: infinite). The native kernel when built, else numpy
+    (EGO_MOTION_KERNEL=numpy forces it); both the same steps."""
     cameras = [c for c in cameras if len(c.xa)]
     n = sum(len(c.xa) for c in cameras)
     R0 = np.asarray(R0, float)
     t0 = np.asarray(t0, float)
+    failed = lambda reason: RigMotionFit(R0, np.zeros(3), float('inf'), np.eye(6) * 1e6, n, 0, float('nan'),
+                                         False, reason)
     if not np.all(np.isfinite(t0)) or np.linalg.norm(t0) < 1e-9:
-        return RigMotionFit(R0, np.zeros(3), float('inf'), np.eye(6) * 1e6, n, 0, float('nan'), False,
-                            'no start translation')
+        return failed('no start translation')
+    if n < min_points:
+        return failed(f'{n} tracks in both frames; need {min_points}')
     if native is not None and os.environ.get(KERNEL_ENV, '').strip().lower() != 'numpy':
-        if cameras:
-            cam_R = np.stack([c.R_base_cam for c in cameras])
-            cam_c = np.stack([np.asarray(c.centre, float) for c in cameras])
-            idx = np.repeat(np.arange(len(cameras)), [len(c.xa) for c in cameras])
-            xa = np.concatenate([c.xa for c in cameras])
-            xb = np.concatenate([c.xb for c in cameras])
-            sg = np.concatenate([np.broadcast_to(c.sigma, (len(c.xa),)) for c in cameras])
-        else:
-            cam_R, cam_c, idx = np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
-            xa = xb = np.zeros((0, 2))
-            sg = np.zeros(0)
-        out = native.refine_rig_motion(R0, t0, cam_R, cam_c, idx, xa, xb, sg, int(iterations),
-                                       HUBER_SIGMAS, float(inlier_sigmas), int(min_points))
+        out = native.refine_rig_motion(
+            R0, t0, np.stack([c.R_base_cam for c in cameras]),
+            np.stack([np.asarray(c.centre, float) for c in cameras]),
+            np.repeat(np.arange(len(cameras)), [len(c.xa) for c in cameras]),
+            np.concatenate([c.xa for c in cameras]), np.concatenate([c.xb for c in cameras]),
+            np.concatenate([np.broadcast_to(c.sigma, (len(c.xa),)) for c in cameras]),
+            int(iterations), HUBER_SIGMAS, float(inlier_sigmas), int(min_points))
     else:
         out = _refine_numpy(R0, t0, cameras, int(iterations), HUBER_SIGMAS, float(inlier_sigmas), int(min_points))
     ok, R, t, cov, n_in, rms, reason = out
     if not ok:
-        return RigMotionFit(R0, np.zeros(3), float('inf'), np.eye(6) * 1e6, n, 0, float('nan'), False, reason)
+        return failed(reason)
     return RigMotionFit(R, t, float('inf'), cov, n, n_in, rms, True)
