@@ -4,7 +4,7 @@
 //
 // Why native: the refinement runs on every frame with a gyro (the gyro bias measured from
 // the cameras' tracks, general_fusion) and the bench allows the IMU 5 % of a frame's CPU;
-// the vectorised numpy version cost 1.0-1.25 ms a frame, almost all of it call overhead on
+// numpy costs 1-3 ms a frame (vectorised or not), almost all of it call overhead on
 // a few hundred tracks.
 
 #include <pybind11/numpy.h>
