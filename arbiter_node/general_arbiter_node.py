@@ -29,7 +29,7 @@ from camera_pose_nodes.pose_estimate import PoseEstimate
 from multicam_ego_motion.coordinator.allocation import QUARTERS
 from multicam_ego_motion.coordinator.graph_spec import bearings_topic
 from multicam_ego_motion.ros_plumbing import diagnostics
-from multicam_ego_motion.ros_plumbing.bearing_messages import msg_to_bearings
+from multicam_ego_motion.ros_plumbing.bearing_messages import bearings_from_cdr
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.ros_plumbing.lean_node import subscribe_remote
 from multicam_ego_motion.ros_plumbing.node_main import spin_node
@@ -37,7 +37,7 @@ from multicam_ego_motion.ros_plumbing.node_parameters import declare_from_table
 from multicam_ego_motion.ros_plumbing.pose_messages import (covariance_field, estimate_to_msg, fill_pose,
                                                msg_to_estimate, ns_to_stamp, stamp_to_ns,
                                                transform_msg)
-from multicam_ego_motion.ros_plumbing.imu_messages import imu_gyro, imu_gyro_covariance
+from multicam_ego_motion.ros_plumbing.imu_messages import gyro_sample_from_cdr
 from multicam_ego_motion.ros_plumbing.qos import LATCHED, RELIABLE, imu_qos
 from multicam_ego_motion.geometry.rig import load_rig
 from multicam_ego_motion.geometry.se3 import is_valid_covariance
@@ -110,8 +110,9 @@ class GeneralArbiterNode(Node):
         self.imu_error = None                # the last problem said of the IMU (not said again)
         self.imu_said = ('ok', None)         # the IMU health's (state, problem) last logged
         if self.fusion.wants_imu():
+            # (as bytes, read by wire_types: 200 samples a second)
             self.imu_sub = self.create_subscription(Imu, self.rig.imu.topic, self.on_imu,
-                                                    imu_qos(p['imu_qos']))
+                                                    imu_qos(p['imu_qos']), raw=True)
         self.wheel_sub = None
         if p['use_wheel_odometry']:
             self.wheel_sub = self.create_subscription(Odometry, p['wheel_odometry_topic'],
@@ -119,7 +120,7 @@ class GeneralArbiterNode(Node):
         # Without stereo and floor: every quarter's tracks, for the scale (scale_state)
         self.bearing_subs = [] if not self.fusion.wants_bearings() else [
             self.create_subscription(PointCloud2, bearings_topic(n, q),
-                                     lambda m, n=n, q=q: self.on_bearings(n, q, m), RELIABLE)
+                                     lambda m, n=n, q=q: self.on_bearings(n, q, m), RELIABLE, raw=True)
             for n in self.rig.names for q in range(1, QUARTERS + 1)]
         self.create_service(Trigger, '~/reset', self.on_reset)
         self.poll_timer = self.create_timer(POLL_PERIOD_S, self.poll)
@@ -135,9 +136,13 @@ class GeneralArbiterNode(Node):
         self.wheel.add(stamp_to_ns(msg.header.stamp), *twist_from_odometry(msg))
         self.fuse_held()
 
-    def on_imu(self, msg: Imu):
-        problem = self.fusion.add_imu(stamp_to_ns(msg.header.stamp), imu_gyro(msg),
-                                      imu_gyro_covariance(msg), msg.header.frame_id)
+    def on_imu(self, data: bytes):
+        try:
+            s = gyro_sample_from_cdr(data)
+        except ValueError as e:
+            problem = f'sample not used: {e}'
+        else:
+            problem = self.fusion.add_imu(s.stamp_ns, s.gyro, s.gyro_covariance, s.frame_id)
         if problem is not None and problem != self.imu_error:
             self.get_logger().error(f'{self.rig.imu.topic}: {problem}', throttle_duration_sec=5.0)
         self.imu_error = problem
@@ -170,9 +175,9 @@ class GeneralArbiterNode(Node):
         return (self.imu_sub is None or self.imu_sub.get_publisher_count() == 0
                 or self.fusion.imu_settled(stamp_ns))
 
-    def on_bearings(self, camera, quarter, msg):
+    def on_bearings(self, camera, quarter, data: bytes):
         try:
-            stamp_ns, ids, xy, sigma = msg_to_bearings(msg)
+            stamp_ns, ids, xy, sigma = bearings_from_cdr(data)
         except ValueError as e:
             self.get_logger().error(f'{bearings_topic(camera, quarter)}: {e}', throttle_duration_sec=5.0)
             return

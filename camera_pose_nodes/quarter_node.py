@@ -36,7 +36,7 @@ from camera_pose_nodes.decoded_images import SHARED as DECODED
 from camera_pose_nodes.image_conversion import bgr8_message
 from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, QuarterParams
 from multicam_ego_motion.ros_plumbing import diagnostics
-from multicam_ego_motion.ros_plumbing.bearing_messages import bearings_to_msg
+from multicam_ego_motion.ros_plumbing.bearing_messages import bearings_to_cdr
 from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.ros_plumbing.node_main import spin_node
 from multicam_ego_motion.ros_plumbing.node_parameters import declare_from_table
@@ -437,7 +437,7 @@ class QuarterNode(Node):
         est = self.estimator.process_image(stamp_ns, gray)
         self.last_processed_ns = stamp_ns
         if self.pub_bearings is not None:
-            self.pub_bearings.publish(bearings_to_msg(stamp_ns, self.camera.frame_id,
+            self.pub_bearings.publish(bearings_to_cdr(stamp_ns, self.camera.frame_id,
                                                       *self.estimator.bearings()))
         self.sent.add(stamp_ns, est)
         msg = estimate_to_msg(est)

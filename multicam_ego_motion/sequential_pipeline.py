@@ -30,7 +30,7 @@ from camera_pose_nodes.pose_estimate import PoseEstimate
 from camera_pose_nodes.quarter_estimator import QuarterEstimator, QuarterParams
 from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
 from multicam_ego_motion.errors import UserError
-from multicam_ego_motion.ros_plumbing.imu_messages import imu_gyro, imu_gyro_covariance
+from multicam_ego_motion.ros_plumbing.imu_messages import gyro_sample_from_cdr
 from multicam_ego_motion.ros_plumbing.pose_messages import estimate_to_msg, msg_to_estimate, stamp_to_ns
 
 
@@ -44,7 +44,7 @@ class SequentialResult:
     # bag: what a peer measured on images already in memory is compared with
     frame_cpu_ms: List[float] = field(default_factory=list)
     stage_ms: Dict[str, List[float]] = field(default_factory=lambda: defaultdict(list))
-    imu_cpu_ms: float = 0.0      # process CPU of taking the IMU's samples into the fusion, all of them
+    imu_cpu_ms: float = 0.0      # process CPU of reading the IMU's samples (their bytes) into the fusion, all of them
     imu_samples: int = 0
     gyro_bias: List[object] = field(default_factory=list)   # the fusion's estimate per frame (None without a gyro)
     gyro_bias_fixes: int = 0     # of them measured from the tracks (general_fusion gyro_bias_from_tracks)
@@ -163,7 +163,8 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
         lo, hi = min(frame_stamps.values()), max(frame_stamps.values())
         return name in frame or max(hi, stamp) - min(lo, stamp) > window_ns
 
-    for topic, msg, _ in reader.decoded(topics):
+    # the IMU's samples as the general arbiter takes them: bytes, read by wire_types
+    for topic, msg, _ in reader.decoded(topics, raw_topics=(imu_topic,)):
         if topic == wheel_topic:
             wheel.add(stamp_to_ns(msg.header.stamp), *twist_from_odometry(msg))
             continue
@@ -171,7 +172,11 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             # (in log-time order: a frame is flushed when the next one's first image comes,
             # by when its gyro samples are in, as the general arbiter waits for them)
             c0 = time.process_time()
-            fusion.add_imu(stamp_to_ns(msg.header.stamp), imu_gyro(msg), imu_gyro_covariance(msg))
+            try:
+                sample = gyro_sample_from_cdr(msg)
+            except ValueError as e:
+                raise UserError(f'bag {bag_path}: {imu_topic}: {e}') from None
+            fusion.add_imu(sample.stamp_ns, sample.gyro, sample.gyro_covariance, sample.frame_id)
             result.imu_cpu_ms += (time.process_time() - c0) * 1e3
             result.imu_samples += 1
             continue

@@ -38,6 +38,24 @@ def test_mean_rate_is_the_gyro_turned_into_base_link():
     assert buf.variances[-2:] == [9e-6, 4e-6]
 
 
+def test_a_sample_is_read_from_the_bytes_a_subscription_takes():
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import Imu
+    from multicam_ego_motion.ros_plumbing.imu_messages import gyro_sample_from_cdr
+    msg = Imu()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = 1_700_000_000, 5_000_001
+    msg.header.frame_id = 'imu_link'
+    msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z = 0.1, -0.25, 1.5
+    msg.angular_velocity_covariance = [4e-6, 0, 0, 0, 5e-6, 0, 0, 0, 6e-6]
+    msg.linear_acceleration.z = 9.81
+    s = gyro_sample_from_cdr(serialize_message(msg))
+    assert s.stamp_ns == 1_700_000_000_005_000_001 and s.frame_id == 'imu_link'
+    assert s.gyro == (0.1, -0.25, 1.5)
+    np.testing.assert_array_equal(s.gyro_covariance, np.diag([4e-6, 5e-6, 6e-6]))
+    with pytest.raises(ValueError, match='do not read as sensor_msgs/msg/Imu'):
+        gyro_sample_from_cdr(serialize_message(msg)[:60])
+
+
 def test_mean_rate_integrates_a_varying_rate():
     buf = ImuBuffer(np.eye(3))
     w = lambda t: np.array([0.0, 0.0, 2.0 * math.sin(t)])

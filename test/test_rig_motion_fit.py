@@ -76,16 +76,22 @@ def test_too_few_cameras_or_tracks_are_named():
 
 
 def test_bearings_go_through_their_message_unchanged_and_a_wrong_layout_is_named():
-    from sensor_msgs.msg import PointField
-    from multicam_ego_motion.ros_plumbing.bearing_messages import bearings_to_msg, msg_to_bearings
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import PointCloud2, PointField
+    from multicam_ego_motion.ros_plumbing.bearing_messages import bearings_from_cdr, bearings_to_cdr
     rng = np.random.default_rng(7)
     ids = np.array([3, 4, 17, 90_000])
     xy = rng.normal(0, 0.5, (4, 2))
-    msg = bearings_to_msg(1_700_000_000_123_456_789, 'front_optical', ids, xy, np.full(4, 0.005))
-    assert msg.header.frame_id == 'front_optical' and msg.width == 4
-    stamp, ids2, xy2, sigma = msg_to_bearings(msg)
+    data = bearings_to_cdr(1_700_000_000_123_456_789, 'front_optical', ids, xy, np.full(4, 0.005))
+    # the standard PointCloud2 on the wire: rclpy (a viewer, a recorder) reads it as usual
+    msg = deserialize_message(data, PointCloud2)
+    assert msg.header.frame_id == 'front_optical' and msg.width == 4 and msg.header.stamp.nanosec == 123_456_789
+    assert [f.name for f in msg.fields] == ['x', 'y', 'z', 'sigma', 'id']
+    stamp, ids2, xy2, sigma = bearings_from_cdr(serialize_message(msg))
     assert stamp == 1_700_000_000_123_456_789
     assert np.array_equal(ids2, ids) and np.array_equal(xy2, xy) and np.all(sigma == 0.005)
     msg.fields = msg.fields[:3] + [PointField(name='intensity', offset=24, datatype=PointField.FLOAT32, count=1)]
     with pytest.raises(ValueError, match='bearings: expected fields'):
-        msg_to_bearings(msg)
+        bearings_from_cdr(serialize_message(msg))
+    with pytest.raises(ValueError, match='do not read as sensor_msgs/msg/PointCloud2'):
+        bearings_from_cdr(data[:40])

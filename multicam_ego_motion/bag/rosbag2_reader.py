@@ -204,9 +204,13 @@ class Rosbag2Reader:
             except _CORRUPT as e:
                 raise _corrupt(f, e) from None
 
-    def decoded(self, topics=None, **kw):
-        """Yield (topic, message, log_time_ns) with messages deserialized by rclpy."""
+    def decoded(self, topics=None, raw_topics=(), **kw):
+        """Yield (topic, message, log_time_ns) with messages deserialized by rclpy; those of
+        `raw_topics` as their CDR bytes (as a raw subscription takes them)."""
         for m in self.messages(topics, **kw):
+            if m.topic in raw_topics:
+                yield m.topic, bytes(m.data), m.log_time_ns
+                continue
             try:
                 yield m.topic, m.decode(), m.log_time_ns
             except Exception as e:  # rclpy raises plain RuntimeError/TypeError on bad CDR

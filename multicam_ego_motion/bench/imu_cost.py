@@ -4,10 +4,10 @@ minutes: one pair of runs minutes apart compares two machines). The images and t
 the default bag's, byte for byte (generate --imu-rate).
 
 The estimation's CPU (the sequential pipeline's frame_cpu_ms: quarters, fusion, feedback), and
-with the IMU also what a graph's general arbiter spends on its samples: taking each into the
-fusion (ImuBuffer, ImuHealth: the pipeline's imu_cpu_ms) and deserialising its message (timed
-here on a sensor_msgs/Imu); and the quarters' track messages, which a rig with an IMU sends for
-the gyro's bias (published and taken: timed here on a message of the run's mean size). Not
+with the IMU also what a graph's general arbiter spends on its samples: reading each from its
+bytes (wire_types, as its raw subscription takes them) into the fusion (ImuBuffer, ImuHealth:
+the pipeline's imu_cpu_ms); and the quarters' track messages, which a rig with an IMU sends for
+the gyro's bias (written and read: timed here on a message of the run's mean size). Not
 reading the bag: a robot's IMU comes over DDS.
 """
 from dataclasses import dataclass
@@ -38,46 +38,25 @@ class ImuCost:
     def lines(self) -> List[str]:
         a = ', '.join(f'{v:.1f}' for v in self.without_ms)
         b = ', '.join(f'{v:.1f}' for v in self.with_ms)
-        return ['| IMU (200 Hz gyro, default bag\'s scene), estimation CPU per frame (with the IMU: its samples\' intake and deserialisation, the quarters\' track messages) '
+        return ['| IMU (200 Hz gyro, default bag\'s scene), estimation CPU per frame (with the IMU: its samples read into the fusion, the quarters\' track messages) '
                 '| without [ms] | with [ms] | more |', '|---|---|---|---:|',
                 f'| {len(self.with_ms)} rounds, interleaved | {a} | {b} | {self.extra_pct:+.1f} % |']
 
 
-def imu_deserialise_ms(repeats: int = 2000) -> float:
-    """CPU ms to deserialise one sensor_msgs/Imu (rclpy, as a subscription does), fastest of 3."""
-    import time
-
-    from rclpy.serialization import deserialize_message, serialize_message
-    from sensor_msgs.msg import Imu
-    msg = Imu()
-    msg.header.frame_id = 'imu_link'
-    data = serialize_message(msg)
-    best = float('inf')
-    for _ in range(3):
-        c0 = time.process_time()
-        for _ in range(repeats):
-            deserialize_message(data, Imu)
-        best = min(best, (time.process_time() - c0) / repeats * 1e3)
-    return best
-
-
 def bearings_message_ms(points: int, repeats: int = 1000) -> float:
-    """CPU ms to publish one quarter's track message of `points` tracks (made and serialised)
-    and to take it (deserialised and read), fastest of 3."""
+    """CPU ms to write one quarter's track message of `points` tracks and to read it (the
+    bytes a quarter publishes and the general arbiter takes), fastest of 3."""
     import time
 
     import numpy as np
-    from rclpy.serialization import deserialize_message, serialize_message
-    from sensor_msgs.msg import PointCloud2
 
-    from multicam_ego_motion.ros_plumbing.bearing_messages import bearings_to_msg, msg_to_bearings
+    from multicam_ego_motion.ros_plumbing.bearing_messages import bearings_from_cdr, bearings_to_cdr
     ids, xy, sigma = np.arange(points), np.zeros((points, 2)), np.full(points, 1e-3)
     best = float('inf')
     for _ in range(3):
         c0 = time.process_time()
         for _ in range(repeats):
-            msg_to_bearings(deserialize_message(serialize_message(bearings_to_msg(1, 'cam', ids, xy, sigma)),
-                                                PointCloud2))
+            bearings_from_cdr(bearings_to_cdr(1, 'cam', ids, xy, sigma))
         best = min(best, (time.process_time() - c0) / repeats * 1e3)
     return best
 
@@ -92,7 +71,6 @@ def imu_cost(bags_folder: Path, params, rounds: int = ROUNDS) -> ImuCost:
 
     # the default bag's scene (the matrix's loop, seed 7) with the IMU, generated on first use
     bag = ensure_bag(Path(bags_folder), 'loop', 7, IMU_RATE_HZ)
-    deserialise_ms = imu_deserialise_ms()
     rig, _ = resolve_rig(Rosbag2Reader(bag), None)
     qp, fp = quarter_params_from(params), fusion_params_from(params)
     threads = cv2.getNumThreads()
@@ -109,8 +87,7 @@ def imu_cost(bags_folder: Path, params, rounds: int = ROUNDS) -> ImuCost:
                 if res.bearing_messages:
                     points = round(res.bearing_points / res.bearing_messages)
                     messages_ms = res.bearing_messages * bearings_message_ms(points)
-                into.append((sum(res.frame_cpu_ms) + res.imu_cpu_ms
-                             + res.imu_samples * deserialise_ms + messages_ms) / n)
+                into.append((sum(res.frame_cpu_ms) + res.imu_cpu_ms + messages_ms) / n)
     finally:
         cv2.setNumThreads(threads)
     return out

@@ -1,14 +1,29 @@
-"""sensor_msgs/Imu -> the gyro's sample as the fusion core takes it (arbiter_node/imu_buffer)."""
+"""sensor_msgs/Imu, as its subscription's CDR bytes (wire_types) -> the gyro's sample as the
+fusion core takes it (arbiter_node/imu_buffer)."""
+from dataclasses import dataclass
+from typing import Tuple
+
 import numpy as np
 
+from multicam_ego_motion.ros_plumbing.wire_types import from_cdr
 
-def imu_gyro(msg) -> np.ndarray:
-    """Angular velocity (rad/s) in the message's frame."""
+IMU_TYPE = 'sensor_msgs/msg/Imu'
+
+
+@dataclass(frozen=True)
+class GyroSample:
+    stamp_ns: int
+    frame_id: str
+    gyro: Tuple[float, float, float]      # angular velocity (rad/s) in the message's frame
+    # its 3x3 covariance as the driver gave it (REP-145: all zeros = unknown, -1 first = not
+    # measured; the buffer then takes its default variance)
+    gyro_covariance: np.ndarray
+
+
+def gyro_sample_from_cdr(data) -> GyroSample:
+    """The gyro's sample of one serialized sensor_msgs/Imu; ValueError naming the problem."""
+    msg = from_cdr(data, IMU_TYPE)
     w = msg.angular_velocity
-    return np.array([w.x, w.y, w.z], float)
-
-
-def imu_gyro_covariance(msg) -> np.ndarray:
-    """Its 3x3 covariance as the driver gave it (REP-145: all zeros = unknown, -1 first =
-    not measured; the buffer then takes its default variance)."""
-    return np.asarray(msg.angular_velocity_covariance, float).reshape(3, 3)
+    stamp = msg.header.stamp
+    return GyroSample(stamp.sec * 1_000_000_000 + stamp.nanosec, msg.header.frame_id, (w.x, w.y, w.z),
+                      msg.angular_velocity_covariance.reshape(3, 3))
