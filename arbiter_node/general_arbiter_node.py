@@ -108,6 +108,7 @@ class GeneralArbiterNode(Node):
         self.held = []                       # (sync group, since): waiting for its wheel reading
         self.imu_sub = None
         self.imu_error = None                # the last problem said of the IMU (not said again)
+        self.imu_unreadable = 0              # samples whose bytes did not read as sensor_msgs/Imu
         self.imu_said = ('ok', None)         # the IMU health's (state, problem) last logged
         if self.fusion.wants_imu():
             # (as bytes, read by wire_types: 200 samples a second)
@@ -141,6 +142,7 @@ class GeneralArbiterNode(Node):
             s = gyro_sample_from_cdr(data)
         except ValueError as e:
             problem = f'sample not used: {e}'
+            self.imu_unreadable += 1
         else:
             problem = self.fusion.add_imu(s.stamp_ns, s.gyro, s.gyro_covariance, s.frame_id)
         if problem is not None and problem != self.imu_error:
@@ -158,6 +160,7 @@ class GeneralArbiterNode(Node):
         bias = self.fusion.ekf.gyro_bias
         values['gyro_bias_rad_s'] = ' '.join(f'{b:+.5f}' for b in bias)
         values['gyro_bias_fixes'] = self.fusion.bias_fixes     # measured from the tracks
+        values['imu_unreadable'] = self.imu_unreadable
         if (health.state, health.problem) != self.imu_said:
             self.imu_said = (health.state, health.problem)
             # (a call site per severity: rclpy refuses one site that changes its severity)

@@ -4,7 +4,11 @@ first 3.3 s, up to 3.8 rad/s, then a drive) with the generator's IMU going bad 2
 it spins (`ego-motion generate --imu-fault F --imu-fault-at 2`). For each fault: the general
 arbiter's /diagnostics names it soon after it starts, every frame gets its /odom, and the
 ATE is at most 10 % worse than the same bag replayed with `--no-imu`. The healthy IMU of the
-same bag is never flagged."""
+same bag is never flagged. Messages on /imu/data whose bytes do not read as sensor_msgs/Imu
+(the healthy bag's, cut short from 2 s to 2.5 s) are counted on /diagnostics and not used, the
+IMU silent meanwhile, and the graph goes on."""
+import shutil
+
 import pytest
 
 from conftest import run_cli
@@ -36,10 +40,34 @@ def runs(tmp_path_factory):
         r = run_cli('generate', *SCENE, '--imu-fault', fault, '--imu-fault-at', FAULT_AT,
                     '--out', bags[fault], timeout=300)
         assert r.returncode == 0, r.stdout + r.stderr
+    bags['unreadable'] = unreadable_copy(bags['healthy'], root / 'unreadable')
     out = {'cameras': replay(bags['healthy'], root / 'r_cameras', '--no-imu', timeout=600)}
     for name, bag in bags.items():
         out[name] = replay(bag, root / f'r_{name}', '--imu', timeout=600)
     return out
+
+
+UNREADABLE = (2.0, 2.5)      # s from the start: /imu/data's messages cut to their first 40 bytes
+
+
+def unreadable_copy(src, dst):
+    """The bag `src` with the IMU's messages of the UNREADABLE window cut short (as bytes)."""
+    from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
+    from multicam_ego_motion.bag.rosbag2_writer import Rosbag2Writer
+    reader = Rosbag2Reader(src)
+    start = None
+    with Rosbag2Writer(dst) as w:
+        for m in reader.messages():
+            start = m.log_time_ns if start is None else start
+            t = (m.log_time_ns - start) * 1e-9
+            data = bytes(m.data)
+            if m.topic == '/imu/data' and UNREADABLE[0] <= t < UNREADABLE[1]:
+                data = data[:40]
+            w.write_serialized(m.topic, m.typename, data, m.log_time_ns)
+    for f in src.iterdir():
+        if f.suffix == '.yaml' and f.name != 'metadata.yaml':
+            shutil.copy(f, dst / f.name)
+    return dst
 
 
 def ate_pct(run) -> float:
@@ -89,3 +117,18 @@ def test_a_bad_imu_is_said_and_does_not_hurt(runs, fault):
             assert fault == 'saturated' and v['imu_state'] == 'ok', (t_, v)
     ate, cameras = ate_pct(run), ate_pct(runs['cameras'])
     assert ate <= 1.10 * cameras, (fault, ate, cameras)
+
+
+def test_imu_messages_that_do_not_read_are_counted_and_the_graph_goes_on(runs):
+    run = runs['unreadable']
+    assert run.returncode == 0, run
+    assert len(run.odometry()[0]) == FRAMES and run.odom_problems() == []
+    said = imu_said(run)
+    assert len(said) == FRAMES
+    # 200 Hz over half a second, each counted once
+    assert 95 <= int(said[-1][3]['imu_unreadable']) <= 105, said[-1][3]
+    assert all(v['imu_unreadable'] == '0' for t, _, _, v in said if t < UNREADABLE[0])
+    # meanwhile the IMU is silent: said, the gyro out
+    silent = [(t, v) for t, _, _, v in said if v['imu_problem'] == 'silent']
+    assert silent and UNREADABLE[0] <= silent[0][0] <= UNREADABLE[1], said[-1]
+    assert ate_pct(run) <= 1.10 * ate_pct(runs['cameras'])
