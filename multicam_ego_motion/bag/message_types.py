@@ -28,8 +28,7 @@ def typename_of(msg_or_class) -> str:
 def message_definition(typename: str) -> str:
     """Concatenated ros2msg text (the schema rosbag2 stores in MCAP) for a type."""
     # rosbags carries the upstream definitions of every Jazzy message, tf2_msgs included.
-    from rosbags.typesys import Stores, get_typestore
-    store = get_typestore(Stores.ROS2_JAZZY)
+    from multicam_ego_motion.ros_plumbing.wire_types import STORE as store
     if typename not in store.types:
         raise UserError(f'no message definition known for {typename!r}')
     text, _ = store.generate_msgdef(typename, ros_version=2)

@@ -18,39 +18,28 @@ every message is its header stamp.
 """
 import cv2
 import numpy as np
-from rosbags.typesys import Stores, get_typestore
 
 from multicam_ego_motion.bag.rosbag2_writer import Rosbag2Writer
 from multicam_ego_motion.geometry.se3 import R_to_quat_xyzw
+from multicam_ego_motion.ros_plumbing.wire_types import TYPES, header, to_cdr
 
 # Header stamps of generated and imported bags start here (2024-01-01T00:00:00Z), so that
 # runs are reproducible byte for byte and never mistaken for wall-clock time.
 STAMP_EPOCH_NS = 1_704_067_200 * 1_000_000_000
 
-# Serialized with rosbags, not rclpy: rclpy leaves CDR padding bytes uninitialized, so the
-# same message would not give the same bytes twice (and a generated bag must). The CDR is
-# the same standard encoding a subscriber receives; rosbags also knows tf2_msgs, so
-# /tf_static is written whether or not tf2_msgs is built here.
-_STORE = get_typestore(Stores.ROS2_JAZZY)
-_T = _STORE.types
-
-
-def stamp_msg(time_ns: int):
-    return _T['builtin_interfaces/msg/Time'](sec=int(time_ns // 1_000_000_000),
-                                             nanosec=int(time_ns % 1_000_000_000))
-
-
-def header(time_ns: int, frame_id: str):
-    return _T['std_msgs/msg/Header'](stamp=stamp_msg(time_ns), frame_id=frame_id)
+# Serialized with rosbags (wire_types), not rclpy: rclpy leaves CDR padding bytes
+# uninitialized, so the same message would not give the same bytes twice (and a generated bag
+# must). The CDR is the same standard encoding a subscriber receives; rosbags also knows
+# tf2_msgs, so /tf_static is written whether or not tf2_msgs is built here.
 
 
 def vector3(v):
-    return _T['geometry_msgs/msg/Vector3'](x=float(v[0]), y=float(v[1]), z=float(v[2]))
+    return TYPES['geometry_msgs/msg/Vector3'](x=float(v[0]), y=float(v[1]), z=float(v[2]))
 
 
 def quaternion(R):
     q = R_to_quat_xyzw(R)
-    return _T['geometry_msgs/msg/Quaternion'](x=float(q[0]), y=float(q[1]), z=float(q[2]),
+    return TYPES['geometry_msgs/msg/Quaternion'](x=float(q[0]), y=float(q[1]), z=float(q[2]),
                                               w=float(q[3]))
 
 
@@ -73,7 +62,7 @@ class RigBagWriter:
             self.bag.add_topic(cam.camera_info_topic, 'sensor_msgs/msg/CameraInfo')
 
     def _write(self, topic, typename, msg, time_ns):
-        self.bag.write_serialized(topic, typename, bytes(_STORE.serialize_cdr(msg, typename)),
+        self.bag.write_serialized(topic, typename, to_cdr(msg, typename),
                                   time_ns)
 
     def write_static_transforms(self, time_ns: int, footprint: bool = False):
@@ -85,13 +74,13 @@ class RigBagWriter:
             frames.append(('base_footprint', (0.0, 0.0, self.rig.floor_z), np.eye(3)))
         if self.rig.imu is not None:
             frames.append((self.rig.imu.frame_id, self.rig.imu.translation, self.rig.imu.rotation))
-        transforms = [_T['geometry_msgs/msg/TransformStamped'](
+        transforms = [TYPES['geometry_msgs/msg/TransformStamped'](
             header=header(time_ns, self.rig.base_frame), child_frame_id=child,
-            transform=_T['geometry_msgs/msg/Transform'](
+            transform=TYPES['geometry_msgs/msg/Transform'](
                 translation=vector3(t), rotation=quaternion(R)))
             for child, t, R in frames]
         self._write('/tf_static', 'tf2_msgs/msg/TFMessage',
-                    _T['tf2_msgs/msg/TFMessage'](transforms=transforms), time_ns)
+                    TYPES['tf2_msgs/msg/TFMessage'](transforms=transforms), time_ns)
 
     def write_images(self, time_ns: int, images: dict):
         """One frame: `images` maps camera name -> mono8 array; all share the stamp. Cameras
@@ -103,7 +92,7 @@ class RigBagWriter:
             if cam.transport == 'compressed':
                 msg = self.compressed(img, header(time_ns, cam.frame_id))
             else:
-                msg = _T['sensor_msgs/msg/Image'](
+                msg = TYPES['sensor_msgs/msg/Image'](
                     header=header(time_ns, cam.frame_id), height=img.shape[0], width=img.shape[1],
                     encoding='mono8', is_bigendian=0, step=img.shape[1], data=img.ravel())
             self._write(cam.input_topic, cam.input_type, msg, time_ns)
@@ -117,7 +106,7 @@ class RigBagWriter:
         ok, data = cv2.imencode('.jpg' if self.image_codec == 'jpeg' else '.png', img, params)
         if not ok:
             raise ValueError(f'{self.image_codec} encoding of a {img.shape} image failed')
-        return _T['sensor_msgs/msg/CompressedImage'](
+        return TYPES['sensor_msgs/msg/CompressedImage'](
             header=head, format=f'mono8; {self.image_codec} compressed mono8', data=data.ravel())
 
     def write_odometry(self, topic: str, time_ns: int, T_odom_base, linear, angular,
@@ -125,15 +114,15 @@ class RigBagWriter:
         """Pose of base_link in `frame`, twist (linear, angular) in base_link; diagonal
         covariances from 6-vectors of variances (x, y, z, rot x, rot y, rot z)."""
         p = T_odom_base[:3, 3]
-        pose = _T['geometry_msgs/msg/PoseWithCovariance'](
-            pose=_T['geometry_msgs/msg/Pose'](
-                position=_T['geometry_msgs/msg/Point'](x=float(p[0]), y=float(p[1]), z=float(p[2])),
+        pose = TYPES['geometry_msgs/msg/PoseWithCovariance'](
+            pose=TYPES['geometry_msgs/msg/Pose'](
+                position=TYPES['geometry_msgs/msg/Point'](x=float(p[0]), y=float(p[1]), z=float(p[2])),
                 orientation=quaternion(T_odom_base[:3, :3])),
             covariance=np.diag(np.asarray(pose_variance, float)).ravel())
-        twist = _T['geometry_msgs/msg/TwistWithCovariance'](
-            twist=_T['geometry_msgs/msg/Twist'](linear=vector3(linear), angular=vector3(angular)),
+        twist = TYPES['geometry_msgs/msg/TwistWithCovariance'](
+            twist=TYPES['geometry_msgs/msg/Twist'](linear=vector3(linear), angular=vector3(angular)),
             covariance=np.diag(np.asarray(twist_variance, float)).ravel())
-        msg = _T['nav_msgs/msg/Odometry'](header=header(time_ns, frame),
+        msg = TYPES['nav_msgs/msg/Odometry'](header=header(time_ns, frame),
                                           child_frame_id=self.rig.base_frame, pose=pose, twist=twist)
         self._write(topic, 'nav_msgs/msg/Odometry', msg, time_ns)
 
@@ -144,9 +133,9 @@ class RigBagWriter:
         stamp_ns: its header stamp when not its log time (a driver's stamps out of order)."""
         no_orientation = np.zeros(9)
         no_orientation[0] = -1.0
-        msg = _T['sensor_msgs/msg/Imu'](
+        msg = TYPES['sensor_msgs/msg/Imu'](
             header=header(time_ns if stamp_ns is None else stamp_ns, frame_id),
-            orientation=_T['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0),
+            orientation=TYPES['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0),
             orientation_covariance=no_orientation,
             angular_velocity=vector3(gyro), angular_velocity_covariance=np.eye(3).ravel() * gyro_variance,
             linear_acceleration=vector3(accel),
@@ -164,9 +153,9 @@ class RigBagWriter:
 
 
 def camera_info(intr, frame_id: str, time_ns: int):
-    return _T['sensor_msgs/msg/CameraInfo'](
+    return TYPES['sensor_msgs/msg/CameraInfo'](
         header=header(time_ns, frame_id), height=int(intr.height), width=int(intr.width),
         distortion_model='plumb_bob', d=np.asarray(intr.D, float), k=intr.K.ravel(),
         r=np.eye(3).ravel(), p=intr.P.ravel(), binning_x=0, binning_y=0,
-        roi=_T['sensor_msgs/msg/RegionOfInterest'](x_offset=0, y_offset=0, height=0, width=0,
+        roi=TYPES['sensor_msgs/msg/RegionOfInterest'](x_offset=0, y_offset=0, height=0, width=0,
                                                    do_rectify=False))

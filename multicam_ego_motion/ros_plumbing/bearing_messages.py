@@ -8,11 +8,11 @@ cost twice as much). Float64 coordinates: what the general arbiter fits is what 
 computed, bit for bit (the sequential pipeline hands over the same arrays)."""
 import numpy as np
 
-from multicam_ego_motion.ros_plumbing.wire_types import TYPES, from_cdr, to_cdr
+from multicam_ego_motion.ros_plumbing.pose_messages import stamp_to_ns
+from multicam_ego_motion.ros_plumbing.wire_types import TYPES, from_cdr, header, to_cdr
 
 CLOUD_TYPE = 'sensor_msgs/msg/PointCloud2'
 _Cloud, _Field = TYPES[CLOUD_TYPE], TYPES['sensor_msgs/msg/PointField']
-_Header, _Time = TYPES['std_msgs/msg/Header'], TYPES['builtin_interfaces/msg/Time']
 
 POINT = np.dtype([('x', '<f8'), ('y', '<f8'), ('z', '<f8'), ('sigma', '<f8'), ('id', '<u4')])
 FIELDS = [_Field(name=n, offset=POINT.fields[n][1], count=1,
@@ -26,8 +26,7 @@ def bearings_to_cdr(stamp_ns: int, frame_id: str, ids, xy, sigma) -> bytes:
     pts['x'], pts['y'], pts['z'] = xy[:, 0], xy[:, 1], 1.0
     pts['sigma'] = sigma
     pts['id'] = np.asarray(ids) & 0xFFFFFFFF     # a quarter numbers its tracks from 0
-    stamp = _Time(sec=int(stamp_ns // 1_000_000_000), nanosec=int(stamp_ns % 1_000_000_000))
-    msg = _Cloud(header=_Header(stamp=stamp, frame_id=frame_id), height=1, width=len(pts),
+    msg = _Cloud(header=header(stamp_ns, frame_id), height=1, width=len(pts),
                  fields=FIELDS, is_bigendian=False, point_step=POINT.itemsize,
                  row_step=POINT.itemsize * len(pts), data=pts.view(np.uint8), is_dense=True)
     return to_cdr(msg, CLOUD_TYPE)
@@ -45,6 +44,5 @@ def bearings_from_cdr(data):
     if len(msg.data) != n * POINT.itemsize:
         raise ValueError(f'bearings: {len(msg.data)} bytes for {n} points')
     pts = msg.data.view(POINT)
-    stamp = msg.header.stamp
-    return (stamp.sec * 1_000_000_000 + stamp.nanosec, pts['id'].astype(np.int64),
+    return (stamp_to_ns(msg.header.stamp), pts['id'].astype(np.int64),
             np.column_stack([pts['x'], pts['y']]), pts['sigma'].copy())

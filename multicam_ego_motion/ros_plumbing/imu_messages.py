@@ -5,6 +5,7 @@ from typing import Tuple
 
 import numpy as np
 
+from multicam_ego_motion.ros_plumbing.pose_messages import stamp_to_ns
 from multicam_ego_motion.ros_plumbing.wire_types import from_cdr
 
 IMU_TYPE = 'sensor_msgs/msg/Imu'
@@ -24,6 +25,5 @@ def gyro_sample_from_cdr(data) -> GyroSample:
     """The gyro's sample of one serialized sensor_msgs/Imu; ValueError naming the problem."""
     msg = from_cdr(data, IMU_TYPE)
     w = msg.angular_velocity
-    stamp = msg.header.stamp
-    return GyroSample(stamp.sec * 1_000_000_000 + stamp.nanosec, msg.header.frame_id, (w.x, w.y, w.z),
+    return GyroSample(stamp_to_ns(msg.header.stamp), msg.header.frame_id, (w.x, w.y, w.z),
                       msg.angular_velocity_covariance.reshape(3, 3))

@@ -4,7 +4,8 @@ come many times a frame: the IMU's samples (200 a second) and the quarters' trac
 rosbags reads them, their publishers send bytes rosbags wrote: rclpy's message objects (a
 dozen Python objects a message, made and read field by field) cost 15 us a message, rosbags'
 5-8. The bytes on the wire are the standard CDR encoding of the same type: any subscriber,
-viewer or recorder takes them as usual."""
+viewer or recorder takes them as usual. Generated bags (bag/rig_bag_writer) are written with the
+same store: rosbags' bytes are the same for the same message, rclpy's padding is not."""
 from rosbags.typesys import Stores, get_typestore
 
 STORE = get_typestore(Stores.ROS2_JAZZY)
@@ -22,3 +23,10 @@ def from_cdr(data, typename: str):
 
 def to_cdr(msg, typename: str) -> bytes:
     return bytes(STORE.serialize_cdr(msg, typename))
+
+
+def header(time_ns: int, frame_id: str):
+    """A std_msgs/Header of this store at time_ns."""
+    stamp = TYPES['builtin_interfaces/msg/Time'](sec=int(time_ns // 1_000_000_000),
+                                                 nanosec=int(time_ns % 1_000_000_000))
+    return TYPES['std_msgs/msg/Header'](stamp=stamp, frame_id=frame_id)
