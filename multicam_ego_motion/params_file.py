@@ -30,3 +30,19 @@ def sync_window_from(params_file) -> float:
     """The general arbiter's frame window (sync_window_s; 0 when the file does not set it):
     a lockstep player and the sequential baseline group frames by it as the arbiter does."""
     return float(node_params(params_file, 'general_arbiter', {'sync_window_s'}).get('sync_window_s', 0.0))
+
+
+def with_node_param(params_file, node_name, name, value, out_file):
+    """A copy of the params file, written to out_file, that gives node `node_name` (every
+    section for it, whatever its namespace; a `/**/node_name` one if there is none) `name`:
+    `value`. The rest of the file as it was."""
+    with open(params_file) as f:
+        doc = yaml.safe_load(f) or {}
+    sections = [s for s in doc if s.endswith(node_name)] or [f'/**/{node_name}']
+    for s in sections:
+        body = doc.setdefault(s, {}) or {}
+        doc[s] = body
+        body.setdefault('ros__parameters', {})[name] = value
+    with open(out_file, 'w') as f:
+        yaml.safe_dump(doc, f, sort_keys=False)
+    return out_file

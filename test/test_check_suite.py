@@ -98,6 +98,21 @@ def test_suite_paths_defaults_and_names(tmp_path):
      'defaults: limits.ate_pct', 'must be at least 0'),
     ({'defaults': {'name': 'x'}, 'bags': [{'generate': LOOP, 'limits': {'ate_pct': 1}}]},
      'defaults: name', 'unknown key'),
+    ({'bags': [{'name': 'x', 'generate': LOOP, 'repeat': {'qualty_level': [0.01, 0.02]}, 'limits': {'ate_pct': 1}}]},
+     'bags[0] (x): repeat', "'qualty_level' is not a parameter of the quarter nodes"),
+    ({'bags': [{'name': 'x', 'generate': LOOP, 'repeat': {'predict_flow': [True, False]}, 'limits': {'ate_pct': 1}}]},
+     'bags[0] (x): repeat', "'predict_flow' is not a number"),
+    ({'bags': [{'name': 'x', 'generate': LOOP, 'repeat': {'quality_level': [0.01]}, 'limits': {'ate_pct': 1}}]},
+     'bags[0] (x): repeat.quality_level', 'expected a list of 2 to 9 values'),
+    ({'bags': [{'name': 'x', 'generate': LOOP, 'repeat': {'quality_level': [0.01, 0.9]}, 'limits': {'ate_pct': 1}}]},
+     'bags[0] (x): repeat.quality_level', 'must be between 0.0001 and 0.5, got 0.9'),
+    ({'bags': [{'name': 'x', 'generate': LOOP, 'repeat': {'min_features': [40, 40.5]}, 'limits': {'ate_pct': 1}}]},
+     'bags[0] (x): repeat.min_features', 'expected an integer, got 40.5'),
+    ({'bags': [{'name': 'x', 'generate': LOOP, 'repeat': {'min_features': [40, 40]}, 'limits': {'ate_pct': 1}}]},
+     'bags[0] (x): repeat.min_features', 'the same value twice'),
+    ({'bags': [{'name': 'x', 'generate': LOOP, 'repeat': {'min_features': [40, 50], 'quality_level': [0.1, 0.2]},
+                'limits': {'ate_pct': 1}}]},
+     'bags[0] (x): repeat', 'expected one quarter parameter and its values, got 2 keys'),
 ])
 def test_suite_errors_name_file_entry_and_key(tmp_path, doc, where, words):
     path = write_suite(tmp_path, doc)
@@ -215,12 +230,16 @@ def fake_replay(monkeypatch):
     figures = {}
     monkeypatch.setattr(dds_transport, 'use_graph_profile', lambda env=None: False)
     monkeypatch.setattr(command, 'prepare',
-                        lambda e, suite, cache, label: command.PreparedBag(e, Path(f'/bags/{e.name}'), None, None, None))
+                        lambda e, suite, cache, label: command.PreparedBag(e, Path(f'/bags/{e.name}'), None, None,
+                                                                           REPO / 'config' / 'params.yaml'))
 
-    def replay_and_score(p, out):
-        if isinstance(figures[p.entry.name], Exception):
-            raise figures[p.entry.name]
-        return dict(figures[p.entry.name]), {}
+    def replay_and_score(p, out, params=None):
+        f = figures[p.entry.name]
+        if callable(f):              # figures from the params file the replay was given
+            return f(yaml.safe_load(Path(params).read_text())), {}
+        if isinstance(f, Exception):
+            raise f
+        return dict(f), {}
     monkeypatch.setattr(command, 'replay_and_score', replay_and_score)
     return figures
 
@@ -292,6 +311,54 @@ def test_exit_codes_and_outputs(tmp_path, fake_replay, capsys):
 
     assert check(suite, '--out', out, '--only', 'nope') == 2
     assert "--only: nope not in" in capsys.readouterr().err
+
+
+def test_a_repeated_bag_is_judged_by_the_mean_of_its_replays(tmp_path, fake_replay, capsys):
+    # each replay gets the params file with its value (the rest of the file as it was);
+    # ATE and drift are averaged, odometry_share and the counts are the worst replay's
+    suite = write_suite(tmp_path, {'bags': [{
+        'name': 'drive', 'generate': LOOP, 'repeat': {'quality_level': [0.009, 0.01, 0.011]},
+        'limits': {'ate_pct': 1.0, 'final_drift_pct': 2.0, 'odometry_share': 1.0}}]})
+    assert load_suite(suite).bags[0].repeat.labels() == \
+        ['quality_level=0.009', 'quality_level=0.01', 'quality_level=0.011']
+    ate = {0.009: 0.7, 0.01: 1.4, 0.011: 0.6}           # one replay over the limit, the mean under it
+
+    def replay(params):
+        q = params['/**/quarter_node']['ros__parameters']
+        assert q['min_features'] == 40                   # the package's file, one value changed
+        v = q['quality_level']
+        return {'ate_pct': ate[v], 'final_drift_pct': 1.0 + v * 100, 'odometry_share': 1.0,
+                'frames': 160, 'frames_with_odometry': 160, 'odometry_poses': 160}
+    fake_replay['drive'] = replay
+    out = tmp_path / 'out'
+    assert check(suite, '--out', out) == 0
+    printed = capsys.readouterr().out
+    assert 'check: [1/1] drive: quality_level=0.01: ATE 1.400 %, final drift 2.000 %, /odom for 160 of 160 frames' \
+        in printed
+    f = json.loads((out / 'results.json').read_text())['bags']['drive']['figures']
+    assert f['ate_pct'] == pytest.approx(0.9) and f['final_drift_pct'] == pytest.approx(2.0)
+    assert [r['ate_pct'] for r in f['replays']] == [0.7, 1.4, 0.6]
+    for v in (0.009, 0.01, 0.011):
+        written = yaml.safe_load((out / 'drive' / f'quality_level={v:g}' / 'params.yaml').read_text())
+        assert written['/**/quarter_node']['ros__parameters']['quality_level'] == v
+
+    # one replay short of a frame's /odom fails the bag, whatever the others did
+    def short(params):
+        f = replay(params)
+        if params['/**/quarter_node']['ros__parameters']['quality_level'] == 0.011:
+            f.update(odometry_share=159 / 160, frames_with_odometry=159, odometry_poses=159)
+        return f
+    fake_replay['drive'] = short
+    assert check(suite, '--out', out) == 1
+    assert capsys.readouterr().out.splitlines()[-1].endswith('drive odometry_share 0.994 (allowed >= 1)')
+    f = json.loads((out / 'results.json').read_text())['bags']['drive']['figures']
+    assert (f['frames_with_odometry'], f['frames']) == (159, 160)
+
+    # the mean over the limit: a regression
+    ate[0.009] = 1.2
+    fake_replay['drive'] = replay
+    assert check(suite, '--out', out) == 1
+    assert capsys.readouterr().out.splitlines()[-1].endswith('drive ate_pct 1.067 (allowed <= 1)')
 
 
 def test_output_folder_of_something_else_is_refused(tmp_path, fake_replay, capsys):

@@ -19,7 +19,8 @@ from pathlib import Path
 
 from multicam_ego_motion.check.bags import cached_bag, default_cache, ensure_generated, is_complete
 from multicam_ego_motion.check.baseline import load_baseline, write_baseline
-from multicam_ego_motion.check.figures import baseline_checks, figures_from, limit_checks
+from multicam_ego_motion.check.figures import (baseline_checks, figures_from, limit_checks,
+                                               mean_of_replays)
 from multicam_ego_motion.check.report import (BagResult, markdown_table, table_rows, verdict_line,
                                               write_reports)
 from multicam_ego_motion.check.suite import BagEntry, load_suite
@@ -98,9 +99,10 @@ def prepare(entry: BagEntry, suite, cache: Path, label: str) -> PreparedBag:
     return PreparedBag(entry, Path(bag), rig, rig_file, entry.params or default_params())
 
 
-def replay_and_score(p: PreparedBag, out: Path):
+def replay_and_score(p: PreparedBag, out: Path, params: Path = None):
     """One lockstep replay of the graph over the bag, scored: (figures, evaluator metrics).
-    Writes `out`/output (the recorded bag), odometry.tum, report.md and the plots."""
+    Writes `out`/output (the recorded bag), odometry.tum, report.md and the plots.
+    `params`: a params file instead of the bag entry's."""
     from multicam_ego_motion.evaluation.evaluate import evaluate_trajectories
     from multicam_ego_motion.evaluation.trajectory_io import load_tum, read_bag_topic, save_tum
     from multicam_ego_motion.replay import run_graph
@@ -112,7 +114,7 @@ def replay_and_score(p: PreparedBag, out: Path):
         p.rig.save(rig_file)
     log = []
     try:
-        g = run_graph(p.bag, out, p.rig, rig_file, p.params, e.workers, lockstep=True,
+        g = run_graph(p.bag, out, p.rig, rig_file, params or p.params, e.workers, lockstep=True,
                       use_wheel=not e.no_wheel, duration=e.duration, logger=log.append)
     finally:
         (out / 'coordinator.log').write_text(''.join(line + '\n' for line in log))
@@ -125,16 +127,40 @@ def replay_and_score(p: PreparedBag, out: Path):
     return figures_from(metrics, g.playback.published_at.keys(), est.stamps), metrics
 
 
+def replay_repeats(p: PreparedBag, result: BagResult, label: str):
+    """A bag entry's `repeat`: one replay per value of its quarter parameter, each in its own
+    folder with its own params file; the bag's figures are their mean (mean_of_replays)."""
+    from multicam_ego_motion.params_file import with_node_param
+    rep = p.entry.repeat
+    runs, metrics = [], {}
+    for value, name in zip(rep.values, rep.labels()):
+        out = result.out_dir / name
+        out.mkdir(parents=True, exist_ok=True)
+        params = with_node_param(p.params, 'quarter_node', rep.parameter, value, out / 'params.yaml')
+        figures, metrics[name] = replay_and_score(p, out, params)
+        runs.append(figures)
+        result.replays.append(name)
+        print(f'check: {label}: {name}: ATE {figures["ate_pct"]:.3f} %, final drift '
+              f'{figures["final_drift_pct"]:.3f} %, /odom for {figures["frames_with_odometry"]} of '
+              f'{figures["frames"]} frames', flush=True)
+    return mean_of_replays(runs), metrics
+
+
 def check_bag(p: PreparedBag, out: Path, baseline, label: str) -> BagResult:
     e = p.entry
     result = BagResult(e.name, str(p.bag), out / e.name,
                        started=datetime.now(timezone.utc).isoformat(timespec='seconds'))
     how = f'lockstep, {e.workers} workers' + (', no wheel' if e.no_wheel else '') \
-        + (f', first {e.duration:g} s' if e.duration else '')
+        + (f', first {e.duration:g} s' if e.duration else '') \
+        + (f', {len(e.repeat.values)} times: {", ".join(e.repeat.labels())}, judged by the mean'
+           if e.repeat else '')
     print(f'check: {label}: replaying {p.bag} ({how})', flush=True)
     t0 = time.monotonic()
     try:
-        result.figures, result.metrics = replay_and_score(p, result.out_dir)
+        if e.repeat:
+            result.figures, result.metrics = replay_repeats(p, result, label)
+        else:
+            result.figures, result.metrics = replay_and_score(p, result.out_dir)
     except KeyboardInterrupt:     # a signal (interrupt.Interrupted): the command ends
         raise
     except UserError as err:

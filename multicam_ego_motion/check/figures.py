@@ -76,6 +76,26 @@ def figures_from(metrics: dict, frame_stamps_ns, odom_stamps_s) -> dict:
     return out
 
 
+COUNTS = ('frames', 'frames_with_odometry', 'odometry_poses')
+
+
+def mean_of_replays(replays: List[dict]) -> dict:
+    """A bag's figures from several replays of it (a suite's `repeat`): each figure the mean
+    (None if any replay has none), except those where higher is better (odometry_share) and
+    the frame counts, which are the worst replay's: every replay must give every frame its
+    /odom. The replays' own figures stay under `replays`."""
+    worst = min(replays, key=lambda f: f['odometry_share'])
+    out = {}
+    for key in replays[0]:
+        if key in COUNTS or (key in FIGURES and FIGURES[key].higher_is_better):
+            out[key] = worst[key]
+            continue
+        values = [f.get(key) for f in replays]
+        out[key] = None if any(v is None for v in values) else sum(values) / len(values)
+    out['replays'] = [dict(f) for f in replays]
+    return out
+
+
 @dataclass
 class Check:
     bag: str

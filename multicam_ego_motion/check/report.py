@@ -30,6 +30,7 @@ class BagResult:
     checks: List[Check] = field(default_factory=list)
     error: Optional[str] = None      # the replay failed: why
     started: str = ''                # ISO time
+    replays: List[str] = field(default_factory=list)  # a `repeat`: each replay's folder in out_dir
 
     @property
     def failed_checks(self) -> List[Check]:
@@ -41,8 +42,8 @@ class BagResult:
 
     def plots(self) -> List[str]:
         """The evaluator's figures, relative to the check's output folder."""
-        return [f'{self.name}/{p}' for p in ('trajectory.png', 'error_over_distance.png')
-                if (self.out_dir / p).exists()]
+        return [f'{self.name}/{d}{p}' for d in ([f'{r}/' for r in self.replays] or [''])
+                for p in ('trajectory.png', 'error_over_distance.png') if (self.out_dir / d / p).exists()]
 
 
 def verdict(check: Check) -> str:

@@ -15,6 +15,18 @@
         no_wheel: true                   # optional: do not fuse /wheel/odom
         duration: 60                     # optional: replay only the first 60 s
         baseline_tolerance_pct: 10       # compare with the baseline, 10 % worse allowed
+      - name: drive                      # a drive whose figures move by 2x with the last bit
+        bag: ../bags/drive               #   of any number (a chaotic case):
+        repeat: {quality_level: [0.009, 0.01, 0.011]}   # judge the mean of three replays,
+        limits: {ate_pct: 1.8}           #   one per value of this quarter parameter
+
+`repeat`: one parameter of the quarter nodes and 2 to 9 values of it (within its declared
+range). The bag is replayed once per value; its figures are the mean over the replays, except
+odometry_share and the frame counts, which are the worst replay's (every replay must give
+every frame its /odom). Why: on a real drive a monocular map's scale is chaotic, a change in
+the last bit anywhere (another CPU's vector unit, a 10 % different feature threshold) moves
+one replay's ATE by up to 2x, so one replay cannot tell a regression from that; a mean over
+nearby settings can.
 
 Every error names the file, the bag entry and the key.
 """
@@ -33,13 +45,25 @@ DEFAULT_GROUND_TRUTH_TOPIC = '/ground_truth/odom'
 SUITE_KEYS = ('bags', 'defaults', 'baseline')
 # keys `defaults:` may give every bag
 SHARED_KEYS = ('rig', 'params', 'workers', 'no_wheel', 'duration', 'limits',
-               'baseline_tolerance_pct', 'ground_truth_topic')
+               'baseline_tolerance_pct', 'ground_truth_topic', 'repeat')
+REPEAT_VALUES = (2, 9)       # how many values a `repeat` may give
 BAG_KEYS = ('name', 'bag', 'generate', 'import_kitti') + SHARED_KEYS
 SOURCES = ('bag', 'generate', 'import_kitti')     # exactly one per entry
 IMPORT_KITTI_KEYS = {'folder': str, 'every': int, 'no_stereo': bool, 'halves': bool}
 GENERATE_KEYS = {'scenario': str, 'seed': int, 'duration': float, 'rate': float, 'width': int,
                  'height': int, 'fx': float, 'k1': float, 'cameras': int}
 NAME_PATTERN = re.compile(r'^[A-Za-z0-9][A-Za-z0-9_.-]*$')
+
+
+@dataclass(frozen=True)
+class Repeat:
+    """Replay once per value of one quarter-node parameter, judge the mean."""
+    parameter: str
+    values: tuple
+
+    def labels(self) -> List[str]:
+        """One folder name per replay: 'quality_level=0.009'."""
+        return [f'{self.parameter}={v:g}' for v in self.values]
 
 
 @dataclass
@@ -56,6 +80,7 @@ class BagEntry:
     limits: Dict[str, float] = field(default_factory=dict)
     baseline_tolerance_pct: Optional[float] = None
     ground_truth_topic: str = DEFAULT_GROUND_TRUTH_TOPIC
+    repeat: Optional[Repeat] = None
 
     @property
     def uses_baseline(self) -> bool:
@@ -125,6 +150,27 @@ def _limits(where, value) -> Dict[str, float]:
     return out
 
 
+def _repeat(where, value) -> Repeat:
+    from camera_pose_nodes.quarter_estimator import PARAMETERS
+    spec = _mapping(where, 'repeat', value)
+    if len(spec) != 1:
+        raise where.error('repeat', f'expected one quarter parameter and its values, got {len(spec)} keys')
+    (name, values), = spec.items()
+    if name not in PARAMETERS:
+        raise where.error('repeat', f'{name!r} is not a parameter of the quarter nodes')
+    default, _, low, high = PARAMETERS[name]
+    if isinstance(default, (bool, str)):
+        raise where.error('repeat', f'{name!r} is not a number (repeat varies a numeric parameter)')
+    lo, hi = REPEAT_VALUES
+    if not isinstance(values, list) or not lo <= len(values) <= hi:
+        raise where.error(f'repeat.{name}', f'expected a list of {lo} to {hi} values, got {values!r}')
+    integer = isinstance(default, int) and not isinstance(default, bool)
+    out = tuple(_number(where, f'repeat.{name}', v, low, high, integer=integer) for v in values)
+    if len(set(out)) != len(out):
+        raise where.error(f'repeat.{name}', f'the same value twice in {values!r}')
+    return Repeat(name, out)
+
+
 def _generate(where, value) -> GenerateSpec:
     from types import SimpleNamespace
 
@@ -186,6 +232,8 @@ def _shared(where, raw: dict, base: Path) -> dict:
             out[key] = _limits(where, v)
         elif key == 'baseline_tolerance_pct':
             out[key] = float(_number(where, key, v, 0.0))
+        elif key == 'repeat':
+            out[key] = _repeat(where, v)
         elif key == 'ground_truth_topic':
             if not isinstance(v, str) or not v.startswith('/'):
                 raise where.error(key, f'expected a topic name (/...), got {v!r}')
