@@ -111,6 +111,7 @@ PARAMETERS = {
     'road_scale_std': (0.15, 'road_scale: relative std of one observation (one camera, two frames)', 1e-3, 10.0),
     'road_scale_threshold': (2.5, 'road_scale: RANSAC threshold of the road homography, in point stds', 0.5, 20.0),
     'road_pitch_from_travel': (True, "road_scale, road_twist: the road's normal square to the body's direction of travel (the median slope of the fused steps: road_pitch), not the body's z axis; a camera's pitch to the road is rarely known to a degree (KITTI's: about 1), and 1 deg moves the road's scale by 5-10 %", None, None),
+    'road_pitch_window_steps': (20, "road_scale, road_twist: the road's normal square to the path the body drove over its last this many steps (odometry frame), in the body's frame by its rotation then: the body pitches 1-2 deg to the road when it brakes, which the rotation sees and the median slope of the steps in the body's own frame (road_pitch_from_travel) does not; 0: that median alone", 0, 300),
     'road_scale_known_step': (True, "road_scale: the fused step between the frames made metric by the road's depth of its road tracks against their depth triangulated with that step (road_plane.road_scale: one unknown, once road_pitch_from_travel knows the road's normal), not the road homography's own step (eight unknowns: 2-3 times the scatter)", None, None),
     'road_speed': (True, "road_scale: the metric step of the last road observation (the cameras' median) measures the body's forward speed every frame, as a wheel would; the rescales of the map alone left KITTI 07's scale 20 % long after a turn", None, None),
     'road_speed_std': (0.05, 'road_speed: relative std of that speed', 1e-3, 10.0),
@@ -542,7 +543,7 @@ class GeneralFusion:
         if dt <= 0.0:
             return 0
         tracks, motions = [], []
-        up = self.scale.road_up()
+        up = self.scale.road_up(s0)
         for cam, tr in zip(self.rig.cameras, self.scale.tracks_between(c0, c1, s0, s1, by_camera=True)):
             if tr is None:
                 continue

@@ -35,7 +35,7 @@ import numpy as np
 
 from arbiter_node.rig_motion_fit import CameraTracks, fit_rig_motion
 from arbiter_node.rig_scale import relative_motion, scale_correction, solve_rig_translation
-from arbiter_node.road_pitch import TravelPitch, camera_over_road
+from arbiter_node.road_pitch import PathNormal, TravelPitch, camera_over_road
 from camera_pose_nodes.road_plane import camera_step, fit_road, road_scale
 from camera_pose_nodes.map_scale import MapScaleCommand, rescale_filter, scale_positions
 from multicam_ego_motion.geometry import se3
@@ -92,6 +92,8 @@ class ScaleState:
         self.n_road_fits = 0                           # of them from the road (diagnostics)
         self.road_step = None                          # (metric body step, dt) of the last road observation
         self.travel_pitch = TravelPitch() if rig.road_scale and params['road_pitch_from_travel'] else None
+        window = int(params.get('road_pitch_window_steps', 0))
+        self.path_normal = PathNormal(window) if self.travel_pitch is not None and window > 0 else None
         if rig.road_scale:
             # the road's points are metric from the first frame, to about the camera's pitch
             self.P = float(params['road_scale_prior_std']) ** 2
@@ -143,6 +145,8 @@ class ScaleState:
         stamps = {n: int(s) for n, s in (camera_stamps or {}).items()}
         if self.history and self.travel_pitch is not None and stamp_ns > self.history[-1][0]:
             self.travel_pitch.add_step(np.linalg.solve(self.history[-1][1], T_now)[:3, 3])
+            if self.path_normal is not None:
+                self.path_normal.add_step(stamp_ns, T_now[:3, 3] - self.history[-1][1][:3, 3])
         self.history.append((int(stamp_ns), T_now.copy(), centres, stamps))
         max_ns = p['scale_window_max_s'] * 1e9
         while len(self.history) > p['scale_pair_max_frames'] + 2 and stamp_ns - self.history[0][0] > max_ns:
@@ -262,10 +266,19 @@ class ScaleState:
             # read 2-3 % low (the prediction is smaller where |t| came out short).
             self._update(k, p['scale_pair_std'])
 
-    def road_up(self) -> np.ndarray:
-        """The road's normal (up) in the body frame: square to the direction of travel
-        (road_pitch) when road_pitch_from_travel, else the body's z."""
-        return self.travel_pitch.up_body() if self.travel_pitch is not None else np.array([0.0, 0.0, 1.0])
+    def road_up(self, at_ns: Optional[int] = None) -> np.ndarray:
+        """The road's normal (up) in the body frame at the recorded frame at_ns: square to the
+        path driven up to then (road_pitch.PathNormal, road_pitch_window_steps) once the
+        direction of travel is known, else square to the direction of travel (road_pitch) when
+        road_pitch_from_travel, else the body's z."""
+        if self.travel_pitch is None:
+            return np.array([0.0, 0.0, 1.0])
+        if self.path_normal is not None and at_ns is not None and self.travel_pitch.pitch_rad is not None:
+            T = next((T for s, T, _, _ in reversed(self.history) if s <= at_ns), None)
+            up = self.path_normal.up_body(at_ns, T[:3, :3]) if T is not None else None
+            if up is not None:
+                return up
+        return self.travel_pitch.up_body()
 
     def _observe_road(self):
         """Over a road: each camera's fused step between the two previous frames made metric
@@ -283,7 +296,7 @@ class ScaleState:
         self.pair_end = b[0]
         self.road_step = None
         ks = []
-        up = self.road_up()
+        up = self.road_up(a[0])
         # the known step's factor once the road's normal is known (the homography's before)
         known_step = p['road_scale_known_step'] and (self.travel_pitch is None
                                                      or self.travel_pitch.pitch_rad is not None)
