@@ -13,8 +13,8 @@ it brakes or accelerates (KITTI 07: 0.2-0.9 deg down on straights, 1.4-2.2 braki
 turn), a tenth of the scale per degree. The rotation the cameras measure sees that pitch, and
 the road's slope changes slowly: so the road's normal is square to the path the body drove over
 its last steps, in the odometry frame, and into the body's frame by its rotation then
-(PathNormal). Measured, mean of three feature thresholds, sequential pipeline, ATE / final
-drift % over five feature thresholds: KITTI 07 1.83 / 2.38 -> 1.35 / 2.00 (20 steps),
+(PathNormal). Measured over five feature thresholds (sequential pipeline, mean ATE / final
+drift %): KITTI 07 1.83 / 2.38 -> 1.35 / 2.00 (20 steps),
 kitti_seq1 with the road as its scale 2.59 / 4.52 -> 2.23 / 2.75 (docs/estimator.md).
 """
 import bisect
