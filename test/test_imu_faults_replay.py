@@ -131,7 +131,7 @@ def test_imu_messages_that_do_not_read_are_counted_and_the_graph_goes_on(runs):
     # samples (a lockstep player sends a frame's IMU samples ahead of it, and which arrive
     # before that frame's /diagnostics is a race: seen 1 at 1.875 s)
     period = 1.0 / 8
-    early = [(t, v['imu_unreadable']) for t, _, _, v in said if t < UNREADABLE[0] - period + 1e-6
+    early = [(t, v['imu_unreadable']) for t, _, _, v in said if t < UNREADABLE[0] - period - 1e-6
              and v['imu_unreadable'] != '0']
     assert not early, early
     last_before = [int(v['imu_unreadable']) for t, _, _, v in said if t < UNREADABLE[0]]
