@@ -92,7 +92,7 @@ class ScaleState:
         self.n_road_fits = 0                           # of them from the road (diagnostics)
         self.road_step = None                          # (metric body step, dt) of the last road observation
         self.travel_pitch = TravelPitch() if rig.road_scale and params['road_pitch_from_travel'] else None
-        window = int(params.get('road_pitch_window_steps', 0))
+        window = int(params['road_pitch_window_steps'])
         self.path_normal = PathNormal(window) if self.travel_pitch is not None and window > 0 else None
         if rig.road_scale:
             # the road's points are metric from the first frame, to about the camera's pitch

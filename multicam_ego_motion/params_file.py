@@ -40,9 +40,8 @@ def with_node_param(params_file, node_name, name, value, out_file):
         doc = yaml.safe_load(f) or {}
     sections = [s for s in doc if s.endswith(node_name)] or [f'/**/{node_name}']
     for s in sections:
-        body = doc.setdefault(s, {}) or {}
-        doc[s] = body
-        body.setdefault('ros__parameters', {})[name] = value
+        doc[s] = doc.get(s) or {}
+        doc[s].setdefault('ros__parameters', {})[name] = value
     with open(out_file, 'w') as f:
         yaml.safe_dump(doc, f, sort_keys=False)
     return out_file

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from multicam_ego_motion.check.bags import cached_bag, default_cache, ensure_generated, is_complete
 from multicam_ego_motion.check.baseline import load_baseline, write_baseline
-from multicam_ego_motion.check.figures import (baseline_checks, figures_from, limit_checks,
+from multicam_ego_motion.check.figures import (FIGURES, baseline_checks, figures_from, limit_checks,
                                                mean_of_replays)
 from multicam_ego_motion.check.report import (BagResult, markdown_table, table_rows, verdict_line,
                                               write_reports)
@@ -140,9 +140,9 @@ def replay_repeats(p: PreparedBag, result: BagResult, label: str):
         figures, metrics[name] = replay_and_score(p, out, params)
         runs.append(figures)
         result.replays.append(name)
-        print(f'check: {label}: {name}: ATE {figures["ate_pct"]:.3f} %, final drift '
-              f'{figures["final_drift_pct"]:.3f} %, /odom for {figures["frames_with_odometry"]} of '
-              f'{figures["frames"]} frames', flush=True)
+        print(f'check: {label}: {name}: ATE {FIGURES["ate_pct"].format(figures["ate_pct"])} %, final drift '
+              f'{FIGURES["final_drift_pct"].format(figures["final_drift_pct"])} %, /odom for '
+              f'{figures["frames_with_odometry"]} of {figures["frames"]} frames', flush=True)
     return mean_of_replays(runs), metrics
 
 

@@ -164,7 +164,7 @@ def _repeat(where, value) -> Repeat:
     lo, hi = REPEAT_VALUES
     if not isinstance(values, list) or not lo <= len(values) <= hi:
         raise where.error(f'repeat.{name}', f'expected a list of {lo} to {hi} values, got {values!r}')
-    integer = isinstance(default, int) and not isinstance(default, bool)
+    integer = isinstance(default, int)         # (bool and str refused above)
     out = tuple(_number(where, f'repeat.{name}', v, low, high, integer=integer) for v in values)
     if len(set(out)) != len(out):
         raise where.error(f'repeat.{name}', f'the same value twice in {values!r}')
