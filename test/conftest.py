@@ -13,8 +13,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 # Before anything imports rclpy: this process (and the subprocesses it starts, which inherit
 # the environment) talk only to each other.
-from multicam_ego_motion.ros_plumbing.ros_domain import free_domain  # noqa: E402  (no rclpy inside)
-os.environ['ROS_DOMAIN_ID'] = str(free_domain())
+from multicam_ego_motion.ros_plumbing.ros_domain import reserve_domain  # noqa: E402  (no rclpy inside)
+os.environ['ROS_DOMAIN_ID'] = str(reserve_domain())
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 # One BLAS thread, as the product runs (multicam_ego_motion/cli.py says why).
 for _var in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):

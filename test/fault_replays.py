@@ -46,7 +46,7 @@ def clean_run(fault_dir):
     """The reference: the same 6 s without faults, on a ROS_DOMAIN_ID the user set."""
     bag = fi.rewrite_bag(fault_dir / 'clean', SECONDS)
     out = fault_dir / 'clean_out'
-    domain = str(ros_domain.free_domain())
+    domain = str(ros_domain.reserve_domain())
     run = replay(bag, out, env=replay_env(out, ROS_DOMAIN_ID=domain))
     run.user_domain = domain
     return run

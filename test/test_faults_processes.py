@@ -84,6 +84,23 @@ def test_ros_domain_is_picked_unless_the_user_set_one():
     assert user == {'ROS_DOMAIN_ID': '42', 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET'}
 
 
+def test_a_reserved_domain_is_not_picked_by_another_run():
+    """The domain a run took is held for its lifetime: another process that starts its
+    search right there (the same pid-spread start) takes the next one, although no DDS
+    participant is on the held domain yet."""
+    held = ros_domain.reserve_domain(seed=1234)
+    start = 1234 % len(ros_domain.DOMAINS)
+    code = ('from multicam_ego_motion.ros_plumbing import ros_domain as r; '
+            f'print(r.free_domain({start}), r.reserve_domain({start}))')
+    other = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                           timeout=60, cwd=str(Path(__file__).resolve().parents[1]))
+    assert other.returncode == 0, other.stderr
+    looked, reserved = map(int, other.stdout.split())
+    assert held not in (looked, reserved) and 1 <= reserved <= 100
+    # (this process's own search does not hand out its held domain twice either)
+    assert ros_domain.reserve_domain(seed=1234) != held
+
+
 def test_replay_honours_a_user_set_domain(clean_run):
     assert clean_run.returncode == 0, clean_run
     assert f'ROS_DOMAIN_ID={clean_run.user_domain})' in clean_run.stdout
