@@ -27,19 +27,23 @@ def _udp_ports_in_use():
     return ports
 
 
-def free_domain(seed: int = None) -> int:
-    """A domain no participant on this host uses right now, searched from a pid-spread start
-    (two runs picking at the same instant rarely start from the same place). Falls back to
-    the start when every domain looks busy or /proc is not there."""
-    seed = os.getpid() * 7919 if seed is None else seed
+def _free_domains(seed: int):
+    """The domains no participant on this host uses right now, in search order from a
+    pid-spread start (two runs picking at the same instant rarely start from the same place)."""
     used = _udp_ports_in_use()
     start = seed % len(DOMAINS)
     for k in range(len(DOMAINS)):
         d = DOMAINS[(start + k) % len(DOMAINS)]
         lo = PORT_BASE + DOMAIN_GAIN * d
         if not any(lo <= p < lo + DOMAIN_GAIN for p in used):
-            return d
-    return DOMAINS[start]
+            yield d
+
+
+def free_domain(seed: int = None) -> int:
+    """A domain no participant on this host uses right now (_free_domains). Falls back to
+    the start when every domain looks busy or /proc is not there."""
+    seed = os.getpid() * 7919 if seed is None else seed
+    return next(_free_domains(seed), DOMAINS[seed % len(DOMAINS)])
 
 
 def reserve_domain(seed: int = None) -> int:
@@ -48,8 +52,7 @@ def reserve_domain(seed: int = None) -> int:
     (between its tests, or before its workers start), never share it. Falls back to an
     unheld free_domain() when no port can be bound."""
     seed = os.getpid() * 7919 if seed is None else seed
-    for k in range(len(DOMAINS)):
-        d = free_domain(seed + k)
+    for d in _free_domains(seed):
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             sock.bind(('', PORT_BASE + DOMAIN_GAIN * d + RESERVE_OFFSET))
