@@ -94,6 +94,7 @@ PARAMETERS = {
     'klt_iterations': (30, 'Lucas-Kanade iterations per pyramid level, at most', 1, 100),
     'klt_epsilon_px': (0.01, 'Lucas-Kanade stops iterating when a step moves the point less than this (px)', 1e-4, 1.0),
     'fb_threshold_px': (0.5, 'forward-backward tracking error that rejects a track (px)', 0.05, 10.0),
+    'floor_warp_min_flow_px': (15.0, "on a road (road_landmarks), a track on the floor that Lucas-Kanade loses and whose floor homography moves it farther than this is searched again on the previous image warped by that homography (rectified images; 0: never)", 0.0, 1000.0),
     'quality_level': (0.01, 'Shi-Tomasi corner quality relative to the best in its cell', 1e-4, 0.5),
     'min_distance_px': (8.0, 'minimum distance between features (px)', 1.0, 100.0),
     'block_size': (5, 'Shi-Tomasi gradient averaging block (px)', 3, 15),
@@ -206,7 +207,8 @@ class QuarterEstimator:
             epsilon_px=p.klt_epsilon_px, fb_threshold_px=p.fb_threshold_px,
             quality_level=p.quality_level, min_distance_px=p.min_distance_px,
             block_size=p.block_size, grid_rows=p.grid_rows, grid_cols=p.grid_cols,
-            max_history=p.max_history, parallel_chunks=p.parallel_chunks)
+            max_history=p.max_history, parallel_chunks=p.parallel_chunks,
+            floor_warp_min_flow_px=p.floor_warp_min_flow_px)
         self.region = QuarterRegion.of(self.quarter, *self.image_size, margin_for(self.klt_cfg))
         self.source = f'{camera.name}/q{self.quarter}'
         self.T_base_cam = camera.T_base_cam
@@ -286,7 +288,7 @@ class QuarterEstimator:
         t0 = time.thread_time()
         crop = self._crop(gray)
         t1 = time.thread_time()
-        flow = self.tracker.flow(crop, self._flow_predictor(stamp_ns))
+        flow = self.tracker.flow(crop, self._flow_predictor(stamp_ns), self._floor_warp(stamp_ns))
         self._prefetched = (int(stamp_ns), self.tracker.prev_crop, crop, flow,
                             {'acquire': (t1 - t0) * 1e3, 'track': (time.thread_time() - t1) * 1e3})
 
@@ -318,7 +320,10 @@ class QuarterEstimator:
         ms['acquire'] += (t1 - t0) * 1e3
 
         # (the rotation steers the search only when the flow is computed now)
-        self.tracker.track(stamp_ns, crop, flow, None if flow is not None else self._flow_predictor(stamp_ns))
+        if flow is None:
+            self.tracker.track(stamp_ns, crop, None, self._flow_predictor(stamp_ns), self._floor_warp(stamp_ns))
+        else:
+            self.tracker.track(stamp_ns, crop, flow)
         self.own_stamps = self.own_stamps[-(OWN_STAMPS_KEPT - 1):] + [int(stamp_ns)]
         t2 = time.thread_time()
         ms['track'] += (t2 - t1) * 1e3
@@ -501,6 +506,17 @@ class QuarterEstimator:
         self._motion.v_body = np.asarray(v_body, float)
         self._motion.ids = self.tracker.ids[has].copy()
         self._motion.Xc = (X - T[:3, 3]) @ T[:3, :3]
+
+    def _floor_warp(self, stamp_ns) -> Optional[flow_prediction.FloorWarp]:
+        """On a road, the floor's homography from the last estimate's motion to `stamp_ns`
+        (KLTTracker._recover_on_floor), or None."""
+        m = self._motion
+        if not self.uses_road or m is None or self.klt_cfg.floor_warp_min_flow_px <= 0:
+            return None
+        if not 0.0 < (int(stamp_ns) - m.stamp_ns) * 1e-9 <= _PREDICT_MAX_DT_S:
+            return None
+        return flow_prediction.floor_warp(m, stamp_ns, self.T_base_cam, self.intrinsics,
+                                          self.tracker.ids, self.floor_z)
 
     def _flow_predictor(self, stamp_ns):
         """(forward, backward) pixel maps of the camera's motion from the last estimate to

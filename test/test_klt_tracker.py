@@ -163,3 +163,57 @@ def test_history_keeps_the_oldest_view_and_the_newest_ones():
     assert same_history(tr, moved) and moved.history_of(i) == tr.history_of(i)
     with pytest.raises(ValueError, match='history'):
         make()[0].set_state(tr.get_state())          # another max_history
+
+
+def road_step(t_forward=0.8, height=1.65, f=300.0):
+    """The floor's homography (previous -> new pixels) of a camera looking along the road,
+    `height` above it, moving `t_forward` m ahead: near road patches grow and shear."""
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]])
+    n = np.array([0.0, 1.0, 0.0])                    # the floor's down in the camera
+    Hm = K @ (np.eye(3) - np.outer([0, 0, t_forward], n) / height) @ np.linalg.inv(K)
+    return Hm / Hm[2, 2]
+
+
+def test_lost_floor_tracks_are_found_on_the_road_warped_image():
+    """A car's step over the road: lower-image patches grow by ~25 % and move 20-80 px.
+    Lucas-Kanade from the floor's own prediction loses most of them; searched again on the
+    previous image warped by the floor's homography, the tracks known to lie on the floor
+    come back where the homography puts them. Tracks not known on the floor stay lost, and
+    with floor_warp_min_flow_px 0 nothing is searched again."""
+    import cv2
+    from camera_pose_nodes.flow_prediction import FloorWarp
+
+    Hm = road_step()
+    img0 = texture(3)
+    img1 = cv2.warpPerspective(img0, Hm, (W, H), flags=cv2.INTER_CUBIC)
+
+    def run(cfg, on_floor):
+        tr, reg = make(cfg, quarter=3)
+        tr.track(0, reg.crop(img0))
+        tr.extract(0)
+        p0 = tr.pts.astype(np.float64)
+        truth = cv2.perspectiveTransform(p0.reshape(-1, 1, 2), Hm).reshape(-1, 2)
+        predict = (lambda px, rows: truth[rows], lambda px, rows: p0[rows])
+        flow = tr.flow(reg.crop(img1), predict, FloorWarp(Hm, on_floor(len(p0))))
+        inside = reg.owns(truth)
+        moved = np.linalg.norm(truth - p0, axis=1) > 15
+        return flow, truth, inside & moved
+
+    on = KLTConfig(floor_warp_min_flow_px=15.0)
+    plain, truth, judged = run(on, lambda n: np.zeros(n, bool))
+    warped, truth_w, judged_w = run(on, lambda n: np.ones(n, bool))
+    assert np.array_equal(truth, truth_w) and judged.sum() >= 20
+    kept_plain, kept_warp = plain.ok[judged].mean(), warped.ok[judged].mean()
+    found = judged & warped.ok & ~plain.ok
+    err = np.linalg.norm(warped.new - truth, axis=1)[found]
+    err_plain = np.linalg.norm(plain.new - truth, axis=1)[judged & plain.ok]
+    print(f'\nroad step: {judged.sum()} tracks, plain LK keeps {kept_plain:.0%} (error median '
+          f'{np.median(err_plain):.2f} px, max {err_plain.max():.2f}), with the floor warp {kept_warp:.0%}: '
+          f'the {found.sum()} found again within {np.median(err):.2f} px median, {err.max():.2f} max')
+    assert kept_warp > 0.8 and kept_warp > kept_plain + 0.3
+    assert np.median(err) < 0.15 and err.max() < 0.5
+    # the tracks plain LK kept are untouched by the recovery
+    both = plain.ok & judged
+    assert np.array_equal(warped.new[both], plain.new[both])
+    off, _, _ = run(KLTConfig(floor_warp_min_flow_px=0.0), lambda n: np.ones(n, bool))
+    assert np.array_equal(off.ok, plain.ok) and np.array_equal(off.new[off.ok], plain.new[plain.ok])
