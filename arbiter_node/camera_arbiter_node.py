@@ -14,6 +14,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 
+from arbiter_node import quarter_fusion
 from arbiter_node.quarter_fusion import fuse_quarters
 from arbiter_node.stamp_sync import StampSynchronizer
 from camera_pose_nodes.image_conversion import bgr8_message
@@ -35,10 +36,7 @@ NODE_PARAMETERS = {
     'sync_timeout_s': (0.5, 'longest wait for all quarters of one frame', 0.0, 60.0),
     'debug_images': (False, 'publish tracks (/<cam>/tracks, bgr8): the quarters\' debug images (their debug_images) put together, the tracked features, their flow and landmark/epipolar status drawn; off: nothing subscribed or published', None, None),
 }
-FUSION_PARAMETERS = {
-    'outlier_chi2': (22.46, 'reject a quarter this far (6-dof Mahalanobis^2) from the robust reference', 1.0, 1e6),
-    'correlation': (0.5, 'assumed error correlation between quarters (shared landmarks); inflates the fused covariance', 0.0, 1.0),
-}
+FUSION_PARAMETERS = quarter_fusion.PARAMETERS
 
 
 class CameraArbiterNode(Node):

@@ -26,6 +26,13 @@ CHI2_6DOF_999 = float(chi2.ppf(0.999, 6))   # 22.46
 DEFAULT_CORRELATION = 0.5
 _MEDOID_CAP = 4.0 * CHI2_6DOF_999           # one far outlier must not dominate the medoid sums
 
+# name -> (default, description, min, max): the camera arbiter declares its fusion parameters
+# from this, and the ROS-free runs take the same values from the params file.
+PARAMETERS = {
+    'outlier_chi2': (CHI2_6DOF_999, 'reject a quarter this far (6-dof Mahalanobis^2) from the robust reference', 1.0, 1e6),
+    'correlation': (DEFAULT_CORRELATION, 'assumed error correlation between quarters (shared landmarks); inflates the fused covariance', 0.0, 1.0),
+}
+
 
 @dataclass
 class FusionReport:

@@ -51,7 +51,7 @@ def run(args) -> int:
     from tqdm import tqdm
 
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
-    from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
+    from multicam_ego_motion.params_file import camera_fusion_params_from, fusion_params_from, quarter_params_from
     from multicam_ego_motion.ros_plumbing.package_share import default_params
     from multicam_ego_motion.replay import resolve_rig
     from multicam_ego_motion.sequential_pipeline import run_sequential
@@ -71,7 +71,8 @@ def run(args) -> int:
     results = {}
     cv2.setNumThreads(1)        # the CPU per frame as one worker spends it
     for label, sub_rig, quarters in tqdm(runs, desc='ablation', unit='run'):
-        res = run_sequential(args.bag, sub_rig, qp, fp, quarters=quarters)
+        res = run_sequential(args.bag, sub_rig, qp, fp, quarters=quarters,
+                             camera_fusion_params=camera_fusion_params_from(params_file))
         results[label] = score(args.bag, res.fused, args.ground_truth_topic)
         results[label]['cpu_ms_per_frame'] = float(np.mean(res.frame_cpu_ms))
     head = '| configuration | ' + ' | '.join(t for _, t, _ in COLUMNS) + ' |'

@@ -26,6 +26,13 @@ def fusion_params_from(params_file):
     return node_params(params_file, 'general_arbiter', set(PARAMETERS))
 
 
+def camera_fusion_params_from(params_file):
+    """The camera arbiters' quarter-fusion parameters (outlier gate, correlation): a
+    sequential baseline with the code's defaults instead rejected a quarter the graph kept."""
+    from arbiter_node.quarter_fusion import PARAMETERS
+    return node_params(params_file, 'camera_arbiter', set(PARAMETERS))
+
+
 def sync_window_from(params_file) -> float:
     """The general arbiter's frame window (sync_window_s; 0 when the file does not set it):
     a lockstep player and the sequential baseline group frames by it as the arbiter does."""

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from typing import Dict, List
 
 from arbiter_node.general_fusion import GeneralFusion
-from arbiter_node.quarter_fusion import fuse_quarters
+from arbiter_node.quarter_fusion import PARAMETERS as QUARTER_FUSION_PARAMETERS, fuse_quarters
 from arbiter_node.wheel_prior import WheelBuffer, twist_from_odometry
 from camera_pose_nodes.camera_model import intrinsics_from_msg
 from camera_pose_nodes.image_conversion import image_msg_to_gray
@@ -53,9 +53,12 @@ class SequentialResult:
 
 def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: dict = None,
                    use_wheel: bool = True, max_frames: int = None, progress=None,
-                   quarters=(1, 2, 3, 4), sync_window_s: float = 0.0) -> SequentialResult:
+                   quarters=(1, 2, 3, 4), sync_window_s: float = 0.0,
+                   camera_fusion_params: dict = None) -> SequentialResult:
     """`quarters`: which quarters of every camera run (all four in the graph; fewer to show
-    what one quarter alone achieves). `sync_window_s`: the general arbiter's frame window."""
+    what one quarter alone achieves). `sync_window_s`: the general arbiter's frame window.
+    `camera_fusion_params`: the camera arbiters' (quarter_fusion.PARAMETERS; their defaults
+    where not given)."""
     window_ns = int(round(sync_window_s * 1e9))
     reader = Rosbag2Reader(bag_path)
     present = [c for c in rig.cameras if c.input_topic in reader.topics]
@@ -64,6 +67,8 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
                         f'({", ".join(c.input_topic for c in rig.cameras)})')
     qp = QuarterParams(**(quarter_params or {}))
     fusion = GeneralFusion(rig, fusion_params or {})
+    cam_fusion = {k: v[0] for k, v in QUARTER_FUSION_PARAMETERS.items()}
+    cam_fusion.update(camera_fusion_params or {})
     # as the quarter nodes publish them and the general arbiter subscribes
     sends_bearings = rig.sends_bearings and fusion.wants_bearings()
     topics = [c.input_topic for c in present] + [c.camera_info_topic for c in present
@@ -112,7 +117,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
                 for k, v in e.stage_ms.items():
                     result.stage_ms[k].append(v)
             received = [as_received(e, e.source) for e in ests]
-            cams[name] = as_received(fuse_quarters(received, source=name), name)
+            cams[name] = as_received(fuse_quarters(received, source=name, **cam_fusion), name)
             result.cameras[name].append(cams[name])
         first = min(frame_stamps.values())
         fused = fusion.process(common, cams, wheel_twist=wheel.at(first), wheel_stamp_ns=wheel.stamp_at(first))

@@ -76,3 +76,16 @@ def test_two_disagreeing_keep_most_confident():
     b = quarter(2, sig=SIG)
     rep = fuse_quarters_report([a, b], 'front')
     assert rep.used == ['front/q2'] and 'front/q1' in rep.rejected
+
+
+def test_params_file_gives_the_camera_arbiters_the_sequential_pipelines_values():
+    # The graph's camera arbiters read config/params.yaml; the sequential pipeline (the graph's
+    # ROS-free twin, which lockstep replays must equal) takes the same values from it, and the
+    # file holds the table's exact ones: with a rounded gate (22.46 for 22.4577) a quarter
+    # whose distance fell between was kept by one and rejected by the other.
+    from pathlib import Path
+
+    from arbiter_node.quarter_fusion import PARAMETERS
+    from multicam_ego_motion.params_file import camera_fusion_params_from
+    params = camera_fusion_params_from(Path(__file__).resolve().parents[1] / 'config' / 'params.yaml')
+    assert params == {k: v[0] for k, v in PARAMETERS.items()}

@@ -62,7 +62,7 @@ def run(args) -> int:
 
     from multicam_ego_motion.ablation import score
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
-    from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
+    from multicam_ego_motion.params_file import camera_fusion_params_from, fusion_params_from, quarter_params_from
     from multicam_ego_motion.ros_plumbing.package_share import default_params
     from multicam_ego_motion.replay import resolve_rig
     from multicam_ego_motion.sequential_pipeline import run_sequential
@@ -82,7 +82,7 @@ def run(args) -> int:
         bag = ensure_bag(folder, scenario, seed, args.imu_rate)
         rig, _ = resolve_rig(Rosbag2Reader(bag), None)
         c0 = time.process_time()
-        res = run_sequential(bag, rig, qp, fp)
+        res = run_sequential(bag, rig, qp, fp, camera_fusion_params=camera_fusion_params_from(params_file))
         m = score(bag, res.fused, '/ground_truth/odom')
         m['cpu_ms'] = (time.process_time() - c0) / max(len(res.fused), 1) * 1e3
         results[f'{scenario} s{seed}'] = m

@@ -65,7 +65,7 @@ def imu_cost(bags_folder: Path, params, rounds: int = ROUNDS) -> ImuCost:
     import cv2
 
     from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
-    from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
+    from multicam_ego_motion.params_file import camera_fusion_params_from, fusion_params_from, quarter_params_from
     from multicam_ego_motion.replay import resolve_rig
     from multicam_ego_motion.sequential_pipeline import run_sequential
 
@@ -81,7 +81,8 @@ def imu_cost(bags_folder: Path, params, rounds: int = ROUNDS) -> ImuCost:
             for use_imu, into in ((False, out.without_ms), (True, out.with_ms)):
                 print(f'bench: IMU cost, round {r + 1} of {rounds}, {"with" if use_imu else "without"} ...',
                       flush=True)
-                res = run_sequential(bag, rig, qp, dict(fp, use_imu=use_imu))
+                res = run_sequential(bag, rig, qp, dict(fp, use_imu=use_imu),
+                                     camera_fusion_params=camera_fusion_params_from(params))
                 n = max(len(res.fused), 1)
                 messages_ms = 0.0
                 if res.bearing_messages:

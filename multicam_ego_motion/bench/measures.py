@@ -38,7 +38,7 @@ def sequential_run(bag, rig, params, n_frames) -> Tuple[float, float]:
 
     import cv2
 
-    from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
+    from multicam_ego_motion.params_file import camera_fusion_params_from, fusion_params_from, quarter_params_from
     from multicam_ego_motion.sequential_pipeline import run_sequential
     print(f'bench: sequential baseline ({n_frames} frames) ...', flush=True)
     threads = cv2.getNumThreads()
@@ -46,7 +46,7 @@ def sequential_run(bag, rig, params, n_frames) -> Tuple[float, float]:
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         seq = run_sequential(bag, rig, quarter_params_from(params), fusion_params_from(params),
-                             max_frames=n_frames)
+                             max_frames=n_frames, camera_fusion_params=camera_fusion_params_from(params))
     finally:
         cv2.setNumThreads(threads)
     n = max(len(seq.fused), 1)
