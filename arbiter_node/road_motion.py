@@ -92,7 +92,7 @@ def rig_motion(tracks: Sequence[CameraTracks], motions: Sequence[Tuple[CameraTra
             best = fit
     if best is None:
         return None
-    t = _metric_translation(best.R, best.t, motions) if lengths else None
+    t = _metric_translation(best.R, best.t, motions)
     if t is None:
         n = float(np.linalg.norm(best.t))
         if n < 1e-9:

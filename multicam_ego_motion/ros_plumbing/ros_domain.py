@@ -39,10 +39,14 @@ def _free_domains(seed: int):
             yield d
 
 
+def _seed(seed):
+    return os.getpid() * 7919 if seed is None else seed
+
+
 def free_domain(seed: int = None) -> int:
     """A domain no participant on this host uses right now (_free_domains). Falls back to
     the start when every domain looks busy or /proc is not there."""
-    seed = os.getpid() * 7919 if seed is None else seed
+    seed = _seed(seed)
     return next(_free_domains(seed), DOMAINS[seed % len(DOMAINS)])
 
 
@@ -50,9 +54,11 @@ def reserve_domain(seed: int = None) -> int:
     """A free domain (free_domain), held by this process until it exits: two runs that
     start at the same instant, or one that picks while another has no participant yet
     (between its tests, or before its workers start), never share it. Falls back to an
-    unheld free_domain() when no port can be bound."""
-    seed = os.getpid() * 7919 if seed is None else seed
+    unheld free domain (the first one seen, else the start) when no port can be bound."""
+    seed = _seed(seed)
+    first = None
     for d in _free_domains(seed):
+        first = d if first is None else first
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             sock.bind(('', PORT_BASE + DOMAIN_GAIN * d + RESERVE_OFFSET))
@@ -61,7 +67,7 @@ def reserve_domain(seed: int = None) -> int:
             continue
         _reservations[d] = sock
         return d
-    return free_domain(seed)
+    return first if first is not None else DOMAINS[seed % len(DOMAINS)]
 
 
 def isolate(env=None) -> dict:
