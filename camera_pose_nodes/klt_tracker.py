@@ -41,10 +41,12 @@ MIN_PREDICTED_PX = 2.0   # a predicted motion shorter than this is left to the s
 
 
 class Flow(NamedTuple):
-    """Where the tracks `ids` went in a new crop: positions (full-image px) and kept flags."""
+    """Where the tracks `ids` went in a new crop: positions (full-image px) and kept flags;
+    `recovered`: which of them the road-warped search found (_recover_on_floor), or None."""
     ids: np.ndarray
     new: np.ndarray
     ok: np.ndarray
+    recovered: Optional[np.ndarray] = None
 
 
 def margin_for(cfg: KLTConfig) -> int:
@@ -73,6 +75,7 @@ class KLTTracker:
         self.hist_n = np.zeros(0, dtype=np.int64)
         self.prev_crop = None      # previous frame's crop: what the next frame is tracked from
         self._cur_crop = None
+        self.last_recovered = 0    # tracks the last track() kept from the road-warped search
 
     def get_state(self) -> dict:
         return {'next_id': self.next_id, 'ids': self.ids.copy(), 'pts': self.pts.copy(),
@@ -211,11 +214,12 @@ class KLTTracker:
         chunks = np.array_split(np.arange(len(p0)), n)
         res = self._map(lk, chunks)
         new, ok = np.concatenate([r[0] for r in res]), np.concatenate([r[1] for r in res])
+        recovered = None
         if floor_warp is not None and self.cfg.floor_warp_min_flow_px > 0:
-            self._recover_on_floor(crop, floor_warp, new, ok)
-        return Flow(self.ids.copy(), new, ok)
+            recovered = self._recover_on_floor(crop, floor_warp, new, ok)
+        return Flow(self.ids.copy(), new, ok, recovered)
 
-    def _recover_on_floor(self, crop: np.ndarray, warp, new: np.ndarray, ok: np.ndarray):
+    def _recover_on_floor(self, crop: np.ndarray, warp, new: np.ndarray, ok: np.ndarray) -> np.ndarray:
         """Lucas-Kanade again for the lost tracks known to lie on the floor whose homography
         moves them more than floor_warp_min_flow_px: from the previous crop warped by the
         floor's homography, where such a patch keeps its shape (a near road patch grows and
@@ -223,16 +227,18 @@ class KLTTracker:
         fails from any start; on KITTI 07 at 5 Hz the warp keeps 2.5x the lower image's
         tracks), forward-backward on the warped pair. Only known floor points and only as a
         fallback: other points below the horizon (kerbs, cars, walls) warped as floor were
-        kept at wrong places and collapsed a road-scaled map. Updates `new` and `ok`."""
+        kept at wrong places and collapsed a road-scaled map. Updates `new` and `ok`; returns
+        which tracks it found."""
         off = self.region.offset
+        found_mask = np.zeros(len(ok), bool)
         cand = ~ok & warp.on_floor
         if not cand.any():
-            return
+            return found_mask
         p = self.pts[cand].astype(np.float64)
         q = cv2.perspectiveTransform(p.reshape(-1, 1, 2), warp.H).reshape(-1, 2)
         far = np.all(np.isfinite(q), axis=1) & (np.linalg.norm(q - p, axis=1) > self.cfg.floor_warp_min_flow_px)
         if not far.any():
-            return
+            return found_mask
         rows = np.flatnonzero(cand)[far]
         to_crop = np.array([[1.0, 0.0, -off[0]], [0.0, 1.0, -off[1]], [0.0, 0.0, 1.0]])
         Hc = to_crop @ warp.H @ np.linalg.inv(to_crop)
@@ -248,6 +254,8 @@ class KLTTracker:
                 & np.all(np.isfinite(found), axis=1) & self.region.owns(found))
         new[rows[good]] = found[good]
         ok[rows[good]] = True
+        found_mask[rows[good]] = True
+        return found_mask
 
     def track(self, stamp_ns: int, crop: np.ndarray, flow: Optional[Flow] = None,
               predict=None, floor_warp=None) -> int:
@@ -264,6 +272,8 @@ class KLTTracker:
             if np.any(rows >= len(flow.ids)) or not np.array_equal(flow.ids[rows], self.ids):
                 raise ValueError('the flow was computed for other tracks')
             new, ok = flow.new[rows], flow.ok[rows]
+            # (a flow computed early also found tracks dropped since: not counted)
+            self.last_recovered = 0 if flow.recovered is None else int(flow.recovered[rows].sum())
             self._keep(ok)
             self.pts = new[ok].astype(np.float32)
             self._append_views(stamp_ns)

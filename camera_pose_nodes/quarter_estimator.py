@@ -321,9 +321,8 @@ class QuarterEstimator:
 
         # (the rotation steers the search only when the flow is computed now)
         if flow is None:
-            self.tracker.track(stamp_ns, crop, None, self._flow_predictor(stamp_ns), self._floor_warp(stamp_ns))
-        else:
-            self.tracker.track(stamp_ns, crop, flow)
+            flow = self.tracker.flow(crop, self._flow_predictor(stamp_ns), self._floor_warp(stamp_ns))
+        self.tracker.track(stamp_ns, crop, flow)
         self.own_stamps = self.own_stamps[-(OWN_STAMPS_KEPT - 1):] + [int(stamp_ns)]
         t2 = time.thread_time()
         ms['track'] += (t2 - t1) * 1e3

@@ -532,6 +532,7 @@ class QuarterNode(Node):
         if est is not None:
             values = {'state': est.state, 'features': est.n_features, 'landmarks': est.n_landmarks,
                       'floor_landmarks': est.n_floor, 'inliers': est.n_inliers,
+                      'road_warp_tracks': self.estimator.tracker.last_recovered,
                       'images_skipped': self.skipped}
             self.skipped = 0
             values.update({f'{k}_ms': float(v) for k, v in est.stage_ms.items()})

@@ -26,8 +26,28 @@ pytestmark = pytest.mark.skipif(bool(missing), reason=f'KITTI sequences not in {
 
 
 @pytest.fixture(scope='module')
-def results(tmp_path_factory):
-    return check_suite(SUITE, tmp_path_factory.mktemp('kitti'), timeout=1200)
+def check_root(tmp_path_factory):
+    return tmp_path_factory.mktemp('kitti')
+
+
+@pytest.fixture(scope='module')
+def results(check_root):
+    return check_suite(SUITE, check_root, timeout=1200)
+
+
+def road_warp_tracks(output_bag):
+    """Per quarter, the tracks it found on the road-warped image over the replay (its
+    /diagnostics' road_warp_tracks)."""
+    from rosbags.highlevel import AnyReader
+    total = {}
+    with AnyReader([output_bag]) as reader:
+        conns = [c for c in reader.connections if c.topic == '/diagnostics']
+        for c, _, raw in reader.messages(connections=conns):
+            for st in reader.deserialize(raw, c.msgtype).status:
+                v = {kv.key: kv.value for kv in st.values}
+                if 'road_warp_tracks' in v:
+                    total[st.name] = total.get(st.name, 0) + int(v['road_warp_tracks'])
+    return total
 
 
 def test_suite_holds_every_case_of_the_real_road_targets():
@@ -47,3 +67,19 @@ def test_suite_holds_every_case_of_the_real_road_targets():
 @pytest.mark.parametrize('name', BAGS)
 def test_real_road_accuracy(results, name):
     assert_suite_bag(results, name, FRAMES[name])
+
+
+def test_lost_road_tracks_are_found_on_the_road_warped_image(results, check_root):
+    """A car's step at 10 Hz makes the near road patches grow and shear: the lower quarters'
+    road tracks that Lucas-Kanade loses are searched again on the road-warped image
+    (floor_warp_min_flow_px) and the quarters say how many they found (177 over the drive at
+    quality_level 0.01); the upper quarters (above the horizon) and a stereo rig (not a road
+    rig: no warp) find none."""
+    check = check_root / 'check'
+    mono = road_warp_tracks(check / 'kitti07_mono' / 'quality_level=0.01' / 'output')
+    assert len(mono) == 4, sorted(mono)
+    print(f'\nKITTI 07, tracks found on the road-warped image: {mono}')
+    assert mono['ego_motion/left/q3'] + mono['ego_motion/left/q4'] >= 100
+    assert mono['ego_motion/left/q1'] == mono['ego_motion/left/q2'] == 0
+    stereo = road_warp_tracks(check / 'kitti_seq1_stereo' / 'output')
+    assert len(stereo) == 8 and not any(stereo.values()), stereo

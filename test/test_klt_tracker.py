@@ -212,6 +212,7 @@ def test_lost_floor_tracks_are_found_on_the_road_warped_image():
           f'the {found.sum()} found again within {np.median(err):.2f} px median, {err.max():.2f} max')
     assert kept_warp > 0.8 and kept_warp > kept_plain + 0.3
     assert np.median(err) < 0.15 and err.max() < 0.5
+    assert not plain.recovered.any() and np.array_equal(warped.recovered, warped.ok & ~plain.ok)
     # the tracks plain LK kept are untouched by the recovery
     both = plain.ok & judged
     assert np.array_equal(warped.new[both], plain.new[both])
