@@ -506,15 +506,20 @@ class QuarterEstimator:
         self._motion.ids = self.tracker.ids[has].copy()
         self._motion.Xc = (X - T[:3, 3]) @ T[:3, :3]
 
+    def _motion_to(self, stamp_ns) -> Optional[float]:
+        """Seconds from the last estimate's motion prior to `stamp_ns`, or None when there is
+        no prior or it may not steer that frame (not before it, or too long before)."""
+        if self._motion is None:
+            return None
+        dt = (int(stamp_ns) - self._motion.stamp_ns) * 1e-9
+        return dt if 0.0 < dt <= _PREDICT_MAX_DT_S else None
+
     def _floor_warp(self, stamp_ns) -> Optional[flow_prediction.FloorWarp]:
         """On a road, the floor's homography from the last estimate's motion to `stamp_ns`
         (KLTTracker._recover_on_floor), or None."""
-        m = self._motion
-        if not self.uses_road or m is None or self.klt_cfg.floor_warp_min_flow_px <= 0:
+        if not self.uses_road or self.klt_cfg.floor_warp_min_flow_px <= 0 or self._motion_to(stamp_ns) is None:
             return None
-        if not 0.0 < (int(stamp_ns) - m.stamp_ns) * 1e-9 <= _PREDICT_MAX_DT_S:
-            return None
-        return flow_prediction.floor_warp(m, stamp_ns, self.T_base_cam, self.intrinsics,
+        return flow_prediction.floor_warp(self._motion, stamp_ns, self.T_base_cam, self.intrinsics,
                                           self.tracker.ids, self.floor_z)
 
     def _flow_predictor(self, stamp_ns):
@@ -525,10 +530,8 @@ class QuarterEstimator:
         behind there); from the rotation's prediction it converges in a few steps. The
         translation moves near points only: it is left to the search below
         predict_translation_min_speed (flow_prediction above it)."""
-        if self._motion is None:
-            return None
-        dt = (int(stamp_ns) - self._motion.stamp_ns) * 1e-9
-        if not 0.0 < dt <= _PREDICT_MAX_DT_S:
+        dt = self._motion_to(stamp_ns)
+        if dt is None:
             return None
         if self._motion.v_body is not None:
             return flow_prediction.predictor(self._motion, stamp_ns, self.T_base_cam, self.intrinsics,

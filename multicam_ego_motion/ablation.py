@@ -63,6 +63,7 @@ def run(args) -> int:
     params_file = Path(args.params) if args.params else default_params()
     qp = quarter_params_from(params_file)
     fp = fusion_params_from(params_file)
+    cp = camera_fusion_params_from(params_file)
     present = [c for c in rig.cameras if c.input_topic in reader.topics]
     runs = [('fused (whole rig)', rig, (1, 2, 3, 4))]
     runs += [(c.name, replace(rig, cameras=[c]), (1, 2, 3, 4)) for c in present]
@@ -71,8 +72,7 @@ def run(args) -> int:
     results = {}
     cv2.setNumThreads(1)        # the CPU per frame as one worker spends it
     for label, sub_rig, quarters in tqdm(runs, desc='ablation', unit='run'):
-        res = run_sequential(args.bag, sub_rig, qp, fp, quarters=quarters,
-                             camera_fusion_params=camera_fusion_params_from(params_file))
+        res = run_sequential(args.bag, sub_rig, qp, fp, quarters=quarters, camera_fusion_params=cp)
         results[label] = score(args.bag, res.fused, args.ground_truth_topic)
         results[label]['cpu_ms_per_frame'] = float(np.mean(res.frame_cpu_ms))
     head = '| configuration | ' + ' | '.join(t for _, t, _ in COLUMNS) + ' |'

@@ -72,7 +72,7 @@ def imu_cost(bags_folder: Path, params, rounds: int = ROUNDS) -> ImuCost:
     # the default bag's scene (the matrix's loop, seed 7) with the IMU, generated on first use
     bag = ensure_bag(Path(bags_folder), 'loop', 7, IMU_RATE_HZ)
     rig, _ = resolve_rig(Rosbag2Reader(bag), None)
-    qp, fp = quarter_params_from(params), fusion_params_from(params)
+    qp, fp, cp = quarter_params_from(params), fusion_params_from(params), camera_fusion_params_from(params)
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)                # as in a worker
     out = ImuCost([], [])
@@ -81,8 +81,7 @@ def imu_cost(bags_folder: Path, params, rounds: int = ROUNDS) -> ImuCost:
             for use_imu, into in ((False, out.without_ms), (True, out.with_ms)):
                 print(f'bench: IMU cost, round {r + 1} of {rounds}, {"with" if use_imu else "without"} ...',
                       flush=True)
-                res = run_sequential(bag, rig, qp, dict(fp, use_imu=use_imu),
-                                     camera_fusion_params=camera_fusion_params_from(params))
+                res = run_sequential(bag, rig, qp, dict(fp, use_imu=use_imu), camera_fusion_params=cp)
                 n = max(len(res.fused), 1)
                 messages_ms = 0.0
                 if res.bearing_messages:
