@@ -5,7 +5,8 @@ does (monocular, every second frame, image halves, a stereo pair with or without
 overlaps), replayed through the whole graph in lockstep on 2 workers without a wheel, and
 must keep its ATE and final drift and give every frame its /odom; where the road is the only
 scale source, by the mean of three replays (the suite's `repeat`: one replay is chaotic there).
-About 6 minutes on two cores."""
+One road replay is also run through the sequential pipeline, which must give its /odom bit for
+bit. About 6 minutes on two cores."""
 from pathlib import Path
 
 import pytest
@@ -83,3 +84,41 @@ def test_lost_road_tracks_are_found_on_the_road_warped_image(results, check_root
     assert mono['ego_motion/left/q1'] == mono['ego_motion/left/q2'] == 0
     stereo = road_warp_tracks(check / 'kitti_seq1_stereo' / 'output')
     assert len(stereo) == 8 and not any(stereo.values()), stereo
+
+
+def test_a_road_replay_is_the_sequential_pipeline_bit_for_bit(results, check_root):
+    """The lockstep graph (quarter nodes on 2 workers, camera arbiters, the general arbiter,
+    over DDS) and the sequential pipeline, given the params file the replay used, publish the
+    same /odom on a road rig, bit for bit. On a road a difference in the last bit of any
+    number moves a drive's figures by up to 2x, so a parameter that one of them reads
+    differently (the camera arbiters' gate once was) or an order that differs would make the
+    sequential pipeline's measurements those of another product. kitti_seq1's outer halves:
+    two cameras, each fused from its quarters, the road the only scale source."""
+    import numpy as np
+    from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
+    from multicam_ego_motion.check.bags import cached_bag
+    from multicam_ego_motion.params_file import (camera_fusion_params_from, fusion_params_from,
+                                                 quarter_params_from, sync_window_from)
+    from multicam_ego_motion.replay import resolve_rig
+    from multicam_ego_motion.ros_plumbing.pose_messages import estimate_to_msg, msg_to_estimate, pose_to_T
+    from multicam_ego_motion.sequential_pipeline import run_sequential
+    from camera_pose_nodes.pose_estimate import PoseEstimate
+
+    entry = next(b for b in load_suite(SUITE).bags if b.name == 'kitti_seq1_halves')
+    bag = cached_bag(check_root / 'bags', entry.import_kitti)
+    replay = check_root / 'check' / entry.name / 'quality_level=0.01'
+    params = replay / 'params.yaml'
+    assert quarter_params_from(params)['quality_level'] == 0.01
+    graph = np.array([pose_to_T(m.pose.pose)
+                      for _, m, _ in Rosbag2Reader(replay / 'output').decoded(['/odom'])])
+    rig, _ = resolve_rig(Rosbag2Reader(bag), None)
+    res = run_sequential(bag, rig, quarter_params_from(params), fusion_params_from(params),
+                         use_wheel=False, sync_window_s=sync_window_from(params),
+                         camera_fusion_params=camera_fusion_params_from(params))
+    # as /odom carries it: a quaternion
+    sequential = np.array([msg_to_estimate(estimate_to_msg(
+        PoseEstimate(f.stamp_ns, f.T_odom_base, f.pose_covariance))).T_odom_base for f in res.fused])
+    assert len(graph) == len(sequential) == FRAMES[entry.name]
+    print(f'\nkitti_seq1 halves: largest difference graph - sequential '
+          f'{np.abs(graph - sequential).max():.3g} m over {len(graph)} poses')
+    assert np.array_equal(graph, sequential)
