@@ -112,6 +112,8 @@ PARAMETERS = {
     'road_scale_threshold': (2.5, 'road_scale: RANSAC threshold of the road homography, in point stds', 0.5, 20.0),
     'road_pitch_from_travel': (True, "road_scale, road_twist: the road's normal square to the body's direction of travel (the median slope of the fused steps: road_pitch), not the body's z axis; a camera's pitch to the road is rarely known to a degree (KITTI's: about 1), and 1 deg moves the road's scale by 5-10 %", None, None),
     'road_pitch_window_steps': (20, "road_scale, road_twist: the road's normal square to the path the body drove over its last this many steps (odometry frame), in the body's frame by its rotation then: the body pitches 1-2 deg to the road when it brakes, which the rotation sees and the median slope of the steps in the body's own frame (road_pitch_from_travel) does not; 0: that median alone", 0, 300),
+    'road_scale_measured_step': (False, "road_scale_known_step: the step's rotation and direction from the rig's motion measured on all cameras' tracks (road_twist's rig_motion), and the road's normal square to the median direction of the last road_scale_measured_window such steps, instead of the fused poses and the fused path's normal: an observation moves by about 2 cot(a) per radian of the camera's pitch to the road (2 % per 0.1 deg for a point 10 deg below the horizon), and a fused path that drifted in a turn tilts both together (KITTI 07's image halves read 3 % low)", None, None),
+    'road_scale_measured_window': (5, "road_scale_measured_step: the road's normal from the median pitch of this many measured steps (one step's direction scatters)", 1, 100),
     'road_scale_known_step': (True, "road_scale: the fused step between the frames made metric by the road's depth of its road tracks against their depth triangulated with that step (road_plane.road_scale: one unknown, once road_pitch_from_travel knows the road's normal), not the road homography's own step (eight unknowns: 2-3 times the scatter)", None, None),
     'road_speed': (True, "road_scale: the metric step of the last road observation (the cameras' median) measures the body's forward speed every frame, as a wheel would; the rescales of the map alone left KITTI 07's scale 20 % long after a turn", None, None),
     'road_speed_std': (0.05, 'road_speed: relative std of that speed', 1e-3, 10.0),
@@ -558,6 +560,7 @@ class GeneralFusion:
         motion = rig_motion(tracks, motions, prior, p['road_twist_min_points'])
         if motion is None:
             return 0
+        self.scale.measured_step = (s0, s1, motion.R, motion.t)
         twist, cov = body_twist(motion, dt, p['road_twist_direction_std_rad'], p['road_twist_length_std'])
         if np.linalg.norm(twist[3:] - self.ekf.twist[3:]) * dt < np.radians(p['road_twist_min_disagreement_deg']):
             return 0

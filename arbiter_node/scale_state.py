@@ -91,6 +91,8 @@ class ScaleState:
         self.n_observations = 0                        # scale observations fused (diagnostics)
         self.n_road_fits = 0                           # of them from the road (diagnostics)
         self.road_step = None                          # (metric body step, dt) of the last road observation
+        self.measured_step = None                      # (stamp a, stamp b, R, t): the rig's motion from its tracks
+        self.measured_pitches = deque(maxlen=int(params['road_scale_measured_window']))
         self.travel_pitch = TravelPitch() if rig.road_scale and params['road_pitch_from_travel'] else None
         window = int(params['road_pitch_window_steps'])
         self.path_normal = PathNormal(window) if self.travel_pitch is not None and window > 0 else None
@@ -300,12 +302,23 @@ class ScaleState:
         # the known step's factor once the road's normal is known (the homography's before)
         known_step = p['road_scale_known_step'] and (self.travel_pitch is None
                                                      or self.travel_pitch.pitch_rad is not None)
+        T_b_body = b[1]
+        m = self.measured_step
+        if known_step and p['road_scale_measured_step'] and m is not None and (m[0], m[1]) == (a[0], b[0]):
+            # the rig's motion measured on the tracks: its rotation and direction, the fused
+            # step's length; the road's normal square to that direction (the body's lateral
+            # axis in the road)
+            d = m[3] / np.linalg.norm(m[3])
+            T_b_body = a[1] @ se3.make_T(m[2], d * np.linalg.norm(np.linalg.solve(a[1], b[1])[:3, 3]))
+            self.measured_pitches.append(math.atan2(d[2], math.hypot(d[0], d[1])))
+            pitch = float(np.median(self.measured_pitches))
+            up = np.array([-math.sin(pitch), 0.0, math.cos(pitch)])
         for cam, tracks in zip(self.rig.cameras, self.tracks_between(a[3], b[3], a[0], b[0], by_camera=True)):
             if tracks is None:
                 continue
             down_c, height = camera_over_road(up, cam.rotation, cam.translation, self.rig.floor_z)
             below = road_region(tracks.xa, down_c, cam.rotation, height)
-            T_a, T_b = a[1] @ cam.T_base_cam, b[1] @ cam.T_base_cam
+            T_a, T_b = a[1] @ cam.T_base_cam, T_b_body @ cam.T_base_cam
             if known_step:
                 T_ab = np.linalg.solve(T_b, T_a)                        # camera a -> camera b
                 if np.linalg.norm(T_ab[:3, 3]) < p['road_scale_min_step_m']:

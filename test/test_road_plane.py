@@ -164,3 +164,44 @@ def test_scale_state_on_a_camera_pitched_to_its_road(travel_pitch):
         assert total == pytest.approx(1.0, abs=0.03)
     else:
         assert abs(total - 1.0) > 0.04
+
+
+@pytest.mark.parametrize('measured', [True, False])
+def test_the_road_scale_takes_the_step_measured_on_the_tracks(measured):
+    """A camera drives along a level road while its map moves 1.25 times too far and its fused
+    steps point 0.7 deg up from the road (an attitude that drifted in a turn, as KITTI 07's
+    image halves' do). The rig's motion measured on all tracks (road_twist's rig_motion) runs
+    along the road: with it (road_scale_measured_step) the step and the road's normal come
+    from that measurement and the rescale is right; from the fused path the normal tilts with
+    the steps, and each road point's depth on the road and triangulated depth move apart."""
+    rig = one_camera_road_rig()
+    cam = rig.cameras[0]
+    state = ScaleState(rig, dict(default_params(), road_scale_measured_step=measured))
+    rng = np.random.default_rng(8)
+    Xw = np.column_stack([rng.uniform(3, 110, 800), rng.uniform(-4, 4, 800), np.zeros(800)])
+    tilt, step, dt_ns, map_factor = np.radians(0.7), 1.0, 100_000_000, 1.25
+    u_map = np.array([np.cos(tilt), 0.0, np.sin(tilt)])
+    ids = np.arange(len(Xw))
+    commands = []
+    for k in range(80):
+        T_map = se3.make_T(np.eye(3), k * step * map_factor * u_map)
+        for c in commands:
+            T_map[:3, 3] *= c.factor
+        Tc = se3.make_T(np.eye(3), np.array([k * step, 0.0, 0.0])) @ cam.T_base_cam
+        Xc = (Xw - Tc[:3, 3]) @ Tc[:3, :3]
+        seen = (Xc[:, 2] > 2.0) & (Xc[:, 2] < 25.0)
+        xy = Xc[seen, :2] / Xc[seen, 2:] + rng.normal(0, 0.3 / FOCAL, (seen.sum(), 2))
+        state.add_bearings('front', 3, k * dt_ns, ids[seen], xy, np.full(seen.sum(), 0.5 / FOCAL))
+        # the general arbiter measures the two previous frames' motion before it observes
+        state.measured_step = ((k - 2) * dt_ns, (k - 1) * dt_ns, np.eye(3), np.array([step, 0.0, 0.0]))
+        state.observe(k * dt_ns, T_map, {'front': T_map})
+        c = state.decide(k * dt_ns, T_map)
+        if c is not None:
+            state.pending = None
+            commands.append(c)
+    total = np.prod([c.factor for c in commands]) * map_factor
+    print(f'\nsteps 0.7 deg off the road, measured step {measured}: the map ends {total:.3f} of the truth')
+    if measured:
+        assert total == pytest.approx(1.0, abs=0.03)
+    else:
+        assert abs(total - 1.0) > 0.05
