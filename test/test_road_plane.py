@@ -67,16 +67,19 @@ def one_camera_road_rig():
     return rig
 
 
-def drive(state, rig, rng, Xw, u, map_factor=1.25, step=1.0, frames=80, dt_ns=100_000_000):
+def drive(state, rig, rng, Xw, u, map_factor=1.25, step=1.0, frames=80, dt_ns=100_000_000,
+          u_map=None, measured=False):
     """The rig's camera drives `step` m a frame along u (body = odom axes) over the road points
-    Xw while the fused poses move map_factor times too far (as rescaled so far); returns the
-    scale state's rescale commands."""
+    Xw while the fused poses move map_factor times too far (as rescaled so far), along u_map
+    (default u); `measured`: the general arbiter's rig motion from the tracks (the true step)
+    is there for each pair. Returns the scale state's rescale commands."""
     cam = rig.cameras[0]
     ids = np.arange(len(Xw))
+    u_map = u if u_map is None else u_map
     commands = []
     for k in range(frames):
         T_true = se3.make_T(np.eye(3), k * step * u)
-        T_map = se3.make_T(np.eye(3), k * step * map_factor * u)
+        T_map = se3.make_T(np.eye(3), k * step * map_factor * u_map)
         for c in commands:             # the map as rescaled so far
             T_map[:3, 3] *= c.factor
         Tc = T_true @ cam.T_base_cam
@@ -84,6 +87,8 @@ def drive(state, rig, rng, Xw, u, map_factor=1.25, step=1.0, frames=80, dt_ns=10
         seen = (Xc[:, 2] > 2.0) & (Xc[:, 2] < 25.0)
         xy = Xc[seen, :2] / Xc[seen, 2:] + rng.normal(0, 0.3 / FOCAL, (seen.sum(), 2))
         state.add_bearings('front', 3, k * dt_ns, ids[seen], xy, np.full(seen.sum(), 0.5 / FOCAL))
+        if measured:       # the general arbiter measures the two previous frames' motion first
+            state.measured_step = ((k - 2) * dt_ns, (k - 1) * dt_ns, np.eye(3), step * u)
         state.observe(k * dt_ns, T_map, {'front': T_map})
         c = state.decide(k * dt_ns, T_map)
         if c is not None:
@@ -175,30 +180,12 @@ def test_the_road_scale_takes_the_step_measured_on_the_tracks(measured):
     from that measurement and the rescale is right; from the fused path the normal tilts with
     the steps, and each road point's depth on the road and triangulated depth move apart."""
     rig = one_camera_road_rig()
-    cam = rig.cameras[0]
     state = ScaleState(rig, dict(default_params(), road_scale_measured_step=measured))
     rng = np.random.default_rng(8)
     Xw = np.column_stack([rng.uniform(3, 110, 800), rng.uniform(-4, 4, 800), np.zeros(800)])
-    tilt, step, dt_ns, map_factor = np.radians(0.7), 1.0, 100_000_000, 1.25
-    u_map = np.array([np.cos(tilt), 0.0, np.sin(tilt)])
-    ids = np.arange(len(Xw))
-    commands = []
-    for k in range(80):
-        T_map = se3.make_T(np.eye(3), k * step * map_factor * u_map)
-        for c in commands:
-            T_map[:3, 3] *= c.factor
-        Tc = se3.make_T(np.eye(3), np.array([k * step, 0.0, 0.0])) @ cam.T_base_cam
-        Xc = (Xw - Tc[:3, 3]) @ Tc[:3, :3]
-        seen = (Xc[:, 2] > 2.0) & (Xc[:, 2] < 25.0)
-        xy = Xc[seen, :2] / Xc[seen, 2:] + rng.normal(0, 0.3 / FOCAL, (seen.sum(), 2))
-        state.add_bearings('front', 3, k * dt_ns, ids[seen], xy, np.full(seen.sum(), 0.5 / FOCAL))
-        # the general arbiter measures the two previous frames' motion before it observes
-        state.measured_step = ((k - 2) * dt_ns, (k - 1) * dt_ns, np.eye(3), np.array([step, 0.0, 0.0]))
-        state.observe(k * dt_ns, T_map, {'front': T_map})
-        c = state.decide(k * dt_ns, T_map)
-        if c is not None:
-            state.pending = None
-            commands.append(c)
+    tilt, map_factor = np.radians(0.7), 1.25
+    commands = drive(state, rig, rng, Xw, np.array([1.0, 0.0, 0.0]), map_factor,
+                     u_map=np.array([np.cos(tilt), 0.0, np.sin(tilt)]), measured=measured)
     total = np.prod([c.factor for c in commands]) * map_factor
     print(f'\nsteps 0.7 deg off the road, measured step {measured}: the map ends {total:.3f} of the truth')
     if measured:
