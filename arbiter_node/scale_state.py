@@ -36,28 +36,12 @@ import numpy as np
 from arbiter_node.rig_motion_fit import CameraTracks, fit_rig_motion
 from arbiter_node.rig_scale import relative_motion, scale_correction, solve_rig_translation
 from arbiter_node.road_pitch import PathNormal, TravelPitch, camera_over_road
-from camera_pose_nodes.road_plane import camera_step, fit_road, road_scale
+from camera_pose_nodes.road_plane import camera_step, fit_road, road_region, road_scale
 from camera_pose_nodes.map_scale import MapScaleCommand, rescale_filter, scale_positions
 from multicam_ego_motion.geometry import se3
 
 SOURCES = ('none', 'rig rotation', 'road', 'floor', 'wheel', 'stereo')
-ROAD_MIN_DEPRESSION_RAD = np.radians(3.0)   # tracks nearer the horizon meet the road too far
-ROAD_AHEAD_M = 20.0          # the road region: where the floor is nearer than this ...
-ROAD_HALF_WIDTH_M = 3.0      # ... and within this of the camera sideways (the lane)
 BEARING_STAMPS_KEPT = 12      # per camera: a pair spans at most scale_pair_max_frames + 1
-
-
-def road_region(xy: np.ndarray, down_c: np.ndarray, R_base_cam: np.ndarray, height: float) -> np.ndarray:
-    """Which normalised points (N, 2) look at the road ahead: their ray meets the rig's floor
-    within ROAD_AHEAD_M and ROAD_HALF_WIDTH_M sideways. Why a region: the lower half of a
-    street image holds parked cars and house fronts, planes of their own, and a homography
-    fit to all of it found those (KITTI 07: steps half their length); the lane ahead is road."""
-    rays = np.column_stack([xy, np.ones(len(xy))])
-    s = rays @ down_c / np.linalg.norm(rays, axis=1)
-    ok = s >= np.sin(ROAD_MIN_DEPRESSION_RAD)
-    lam = np.where(ok, height / np.where(ok, rays @ down_c, 1.0), 0.0)
-    X_body = (rays * lam[:, None]) @ R_base_cam.T          # from the camera, in base_link axes
-    return ok & (X_body[:, 0] <= ROAD_AHEAD_M) & (np.abs(X_body[:, 1]) <= ROAD_HALF_WIDTH_M)
 
 
 def metric_source(rig, wheel_seen: bool) -> Optional[str]:
@@ -101,12 +85,19 @@ class ScaleState:
             self.P = float(params['road_scale_prior_std']) ** 2
 
     def add_bearings(self, camera: str, quarter: int, stamp_ns: int, ids, xy, sigma):
-        """One quarter's tracks at one of its frames (normalised points, their std)."""
+        """One quarter's tracks at one of its frames (normalised points, their std). A second
+        message for the same frame adds to the first: the features the quarter extracted on
+        that frame after it sent its tracks (QuarterEstimator.new_bearings)."""
         if camera not in self.rig.names:
             return
         per = self.bearings.setdefault(camera, {})
-        per.setdefault(int(stamp_ns), {})[int(quarter)] = (np.asarray(ids), np.asarray(xy, float),
-                                                           np.asarray(sigma, float))
+        at = per.setdefault(int(stamp_ns), {})
+        entry = (np.asarray(ids), np.asarray(xy, float), np.asarray(sigma, float))
+        if int(quarter) in at:
+            known = at[int(quarter)]
+            new = ~np.isin(entry[0], known[0])      # (ids are unique per quarter and frame)
+            entry = tuple(np.concatenate([a, b[new]]) for a, b in zip(known, entry))
+        at[int(quarter)] = entry
         while len(per) > BEARING_STAMPS_KEPT:
             del per[min(per)]
 

@@ -342,6 +342,35 @@ class KLTTracker:
 
         found = self._map(corners, cells)
         new = np.concatenate(found).astype(np.float32) if found else np.zeros((0, 2), np.float32)
+        return self._add(stamp_ns, new)
+
+    def extract_in(self, stamp_ns: int, mask: np.ndarray, box, want: int) -> int:
+        """Up to `want` Shi-Tomasi corners where `mask` (crop pixels, uint8) is set, away from
+        existing tracks, their quality relative to the best corner there, not the cell's: a
+        region of plain asphalt next to a car's edges gets its own corners. `box`: the
+        mask's bounding box (x0, y0, x1, y1) in crop pixels. Returns how many."""
+        crop = self._cur_crop
+        if crop is None or want <= 0:
+            return 0
+        cfg, reg = self.cfg, self.region
+        x0, y0, x1, y1 = box
+        pad = cfg.block_size
+        wx0, wy0 = max(0, x0 - pad), max(0, y0 - pad)
+        wx1, wy1 = min(crop.shape[1], x1 + pad), min(crop.shape[0], y1 + pad)
+        m = mask[wy0:wy1, wx0:wx1].copy()
+        r = int(cfg.min_distance_px)
+        for u, v in self.pts.tolist():
+            cv2.circle(m, (int(round(u - reg.cx0 - wx0)), int(round(v - reg.cy0 - wy0))), r, 0, -1)
+        p = cv2.goodFeaturesToTrack(crop[wy0:wy1, wx0:wx1], maxCorners=int(want),
+                                    qualityLevel=cfg.quality_level, minDistance=cfg.min_distance_px,
+                                    mask=m, blockSize=cfg.block_size)
+        if p is None:
+            return 0
+        return self._add(stamp_ns, p.reshape(-1, 2).astype(np.float32)
+                         + np.array([reg.cx0 + wx0, reg.cy0 + wy0], np.float32))
+
+    def _add(self, stamp_ns: int, new: np.ndarray) -> int:
+        """New tracks at full-image pixels `new`, first seen at stamp_ns."""
         if len(new):
             new_ids = np.arange(self.next_id, self.next_id + len(new), dtype=np.int64)
             self.next_id += len(new)

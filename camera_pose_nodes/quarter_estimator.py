@@ -34,7 +34,7 @@ from multicam_ego_motion.geometry.se3 import R_to_rotvec, rotvec_to_R
 # Fused poses come back at the stamps a quarter tracked, within a feedback timeout or so.
 OWN_STAMPS_KEPT = 32
 
-STATE_VERSION = 10    # 10: motion with translation; 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays; 6: motion; 7: stereo partner; 8: map scale; 9: own stamps
+STATE_VERSION = 11    # 11: new bearings; 10: motion with translation; 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays; 6: motion; 7: stereo partner; 8: map scale; 9: own stamps
 STAGES = ('acquire', 'extract', 'track', 'pose', 'structure')
 _ROTATION_ONLY_POSITION_VARIANCE = 1.0e2   # m^2: 'position not measured', still < UNINFORMATIVE
 _TRIANGULATION_VIEWS = 5     # views per DLT: oldest, newest and evenly spaced between
@@ -95,6 +95,7 @@ PARAMETERS = {
     'klt_epsilon_px': (0.01, 'Lucas-Kanade stops iterating when a step moves the point less than this (px)', 1e-4, 1.0),
     'fb_threshold_px': (0.5, 'forward-backward tracking error that rejects a track (px)', 0.05, 10.0),
     'floor_warp_min_flow_px': (15.0, "on a road (road_landmarks), a track on the floor that Lucas-Kanade loses and whose floor homography moves it farther than this is searched again on the previous image warped by that homography (rectified images; 0: never)", 0.0, 1000.0),
+    'road_lane_features': (20, "on a road (road_landmarks), keep at least this many tracks in the lane ahead (road_plane.road_region: the level floor within 20 m ahead and 3 m sideways), extracted there whenever fewer, however many the quarter has, with their quality relative to the lane's best corner: plain asphalt beside a car's edges has no corner within quality_level of theirs, and the road's scale needs tracks on the road at every frame pair (0: only as the rest of the quarter)", 0, 1000),
     'quality_level': (0.01, 'Shi-Tomasi corner quality relative to the best in its cell', 1e-4, 0.5),
     'min_distance_px': (8.0, 'minimum distance between features (px)', 1.0, 100.0),
     'block_size': (5, 'Shi-Tomasi gradient averaging block (px)', 3, 15),
@@ -255,6 +256,10 @@ class QuarterEstimator:
         # Kept as it was then, so a flow computed early (prefetch) or late is the same.
         self._motion = None
         self._extract_due = None   # stamp whose new features are still to be extracted
+        self._cells_due = False    # ... in the grid's cells (too few tracks in the quarter)
+        self._lane_want = 0        # ... this many in the lane ahead (road_lane_features)
+        self._lane_cache = None    # (mask, box) of the lane ahead in this quarter (_lane)
+        self._new_bearings = None  # (stamp, ids, xy, sigma) of features extracted, not yet taken
         self.own_stamps = []       # the last OWN_STAMPS_KEPT stamps this quarter tracked
         self.scale_epoch = 0         # map rescales applied (map_scale)
         self._two_view_ref = None    # stamp of the view a two-view initialisation started from
@@ -330,7 +335,9 @@ class QuarterEstimator:
         # New features are extracted later (extract_pending): they have no landmark and no
         # earlier view, so they take no part in this frame's estimate, and a worker extracts
         # them once the estimate is out, in its idle time (latency).
-        if self.tracker.needs_features():
+        self._cells_due = self.tracker.needs_features()
+        self._lane_want = self._lane_shortfall()
+        if self._cells_due or self._lane_want:
             self._extract_due = int(stamp_ns)
         ms['extract'] = self.extract_ms     # ran after the previous estimate
         self.extract_ms = 0.0
@@ -397,8 +404,10 @@ class QuarterEstimator:
         those units. The general arbiter fits the rig's metric motion to them in turns
         (arbiter_node/rig_motion_fit) when nothing else gives the scale."""
         xy = self.intrinsics.undistort_points(self.tracker.pts)
-        sigma = self.params.pixel_sigma / (0.5 * (self.intrinsics.fx + self.intrinsics.fy))
-        return self.tracker.ids.copy(), xy, np.full(len(xy), sigma)
+        return self.tracker.ids.copy(), xy, np.full(len(xy), self._bearing_sigma())
+
+    def _bearing_sigma(self) -> float:
+        return self.params.pixel_sigma / (0.5 * (self.intrinsics.fx + self.intrinsics.fy))
 
     def _relinearize(self, X, xy, dt):
         """Stereo rigs (metric landmarks from the first frame, often a car at speed): a
@@ -559,9 +568,64 @@ class QuarterEstimator:
         if self._extract_due is None:
             return
         t0 = time.thread_time()
-        self.tracker.extract(self._extract_due)
+        n0 = len(self.tracker.ids)
+        if self._cells_due:
+            self.tracker.extract(self._extract_due)
+        if self._lane_want:
+            mask, box = self._lane()
+            self.tracker.extract_in(self._extract_due, mask, box, self._lane_want)
+        n = len(self.tracker.ids) - n0
+        if n and self.uses_road:
+            # their first view, for the general arbiter's frame pairs (new_bearings)
+            xy = self.intrinsics.undistort_points(self.tracker.pts[-n:])
+            nb = (self._extract_due, self.tracker.ids[-n:].copy(), xy, np.full(n, self._bearing_sigma()))
+            if self._new_bearings is not None and self._new_bearings[0] == nb[0]:
+                nb = (nb[0],) + tuple(np.concatenate([a, b]) for a, b in zip(self._new_bearings[1:], nb[1:]))
+            self._new_bearings = nb
         self._extract_due = None
+        self._cells_due, self._lane_want = False, 0
         self.extract_ms += (time.thread_time() - t0) * 1e3
+
+    def new_bearings(self):
+        """On a road, the features extracted since the last call, at the frame they were
+        extracted on: (stamp, ids, normalised points, stds), or None. bearings() goes out
+        before its frame's new features exist, so without these a track born on frame a
+        counts for the general arbiter's road scale from the pair (b, c) on, not (a, b): at
+        car speed the lane's tracks rarely live three frames (KITTI 07 at 5 Hz: 0-7 of them
+        in the lane a frame pair, below road_scale's minimum, on half the drive)."""
+        nb, self._new_bearings = self._new_bearings, None
+        return nb
+
+    def _lane_shortfall(self) -> int:
+        """How many tracks the lane ahead lacks (road_lane_features), on a road."""
+        want = self.params.road_lane_features
+        if not (self.uses_road and want > 0) or self._lane()[1] is None:
+            return 0
+        return max(0, want - int(self._in_lane(self.tracker.pts).sum()))
+
+    def _lane(self):
+        """(mask, box): where this quarter's own rectangle looks at the lane ahead (crop
+        pixels, uint8) and its bounding box (x0, y0, x1, y1), box None where it does not.
+        From the rig: the camera's mount over the level floor (a cache: it never changes)."""
+        if self._lane_cache is None:
+            reg = self.region
+            h, w = reg.cy1 - reg.cy0, reg.cx1 - reg.cx0
+            vv, uu = np.mgrid[reg.cy0:reg.cy1, reg.cx0:reg.cx1]
+            own = (uu >= reg.x0) & (uu < reg.x1) & (vv >= reg.y0) & (vv < reg.y1)
+            inside = own & self._in_lane(np.column_stack([uu.ravel(), vv.ravel()])).reshape(h, w)
+            ys, xs = np.nonzero(inside)
+            box = None if not len(xs) else (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
+            self._lane_cache = (inside.astype(np.uint8) * 255, box)
+        return self._lane_cache
+
+    def _in_lane(self, px: np.ndarray) -> np.ndarray:
+        """Which full-image pixels look at the lane ahead (road_region, the level floor)."""
+        if not len(px):
+            return np.zeros(0, bool)
+        R = self.T_base_cam[:3, :3]
+        down_c = R.T @ np.array([0.0, 0.0, -1.0])
+        height = float(self.T_base_cam[2, 3] - self.floor_z)
+        return road_plane.road_region(self.intrinsics.undistort_points(px), down_c, R, height)
 
     def _fused_arrays(self):
         """(sorted stamps (K,), body poses (K, 4, 4), camera rotations (K, 3, 3), camera
@@ -872,7 +936,8 @@ class QuarterEstimator:
                 'motion': None if self._motion is None else self._motion.to_list(),
                 'partner': self.partner, 'own_stamps': list(self.own_stamps),
                 'scale_epoch': self.scale_epoch, 'two_view_ref': self._two_view_ref,
-                'scale_pending': [c.to_list() for c in self._scale_pending]}
+                'scale_pending': [c.to_list() for c in self._scale_pending],
+                'new_bearings': self._new_bearings}
 
     def set_state(self, s: dict):
         if s.get('version') != STATE_VERSION:
@@ -898,6 +963,8 @@ class QuarterEstimator:
             self.set_partner(*s['partner'])
         self._prefetched = None
         self._extract_due = None
+        self._cells_due, self._lane_want = False, 0
         self.scale_epoch = int(s['scale_epoch'])
         self._two_view_ref = s['two_view_ref']
         self._scale_pending = [map_scale.MapScaleCommand.from_list(c) for c in s['scale_pending']]
+        self._new_bearings = s['new_bearings']

@@ -337,6 +337,7 @@ class QuarterNode(Node):
         if self.estimator is not None:
             self.estimator.apply_fused_pose(fused.stamp_ns, fused.T_odom_base, fused.covariance,
                                             partner_gray)
+            self.publish_new_bearings()
             if self.on_frame_done is not None:
                 self.on_frame_done(self)
         self.drain()
@@ -394,6 +395,14 @@ class QuarterNode(Node):
         if self.estimator is not None:
             self.estimator.extract_pending()
         self.prefetch()
+        self.publish_new_bearings()
+
+    def publish_new_bearings(self):
+        """The features extracted since the last call, at their first frame (QuarterEstimator.new_bearings),
+        when this quarter sends its tracks."""
+        nb = self.estimator.new_bearings() if self.estimator is not None else None
+        if nb is not None and self.pub_bearings is not None:
+            self.pub_bearings.publish(bearings_to_cdr(nb[0], self.camera.frame_id, *nb[1:]))
 
     def prefetch(self):
         """Pipelining: while this quarter waits for the fused pose of its last frame, the
@@ -436,6 +445,7 @@ class QuarterNode(Node):
                 return
         est = self.estimator.process_image(stamp_ns, gray)
         self.last_processed_ns = stamp_ns
+        self.publish_new_bearings()      # (the last frame's, if process_image extracted them)
         if self.pub_bearings is not None:
             self.pub_bearings.publish(bearings_to_cdr(stamp_ns, self.camera.frame_id,
                                                       *self.estimator.bearings()))

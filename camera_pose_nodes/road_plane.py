@@ -23,6 +23,22 @@ import numpy as np
 
 MIN_POINTS = 8                    # a homography from fewer is not worth trusting
 NORMAL_AGREEMENT_COS = np.cos(np.radians(12.0))   # decomposed normal against the rig's floor
+ROAD_MIN_DEPRESSION_RAD = np.radians(3.0)   # tracks nearer the horizon meet the road too far
+ROAD_AHEAD_M = 20.0          # the road region: where the floor is nearer than this ...
+ROAD_HALF_WIDTH_M = 3.0      # ... and within this of the camera sideways (the lane)
+
+
+def road_region(xy: np.ndarray, down_c: np.ndarray, R_base_cam: np.ndarray, height: float) -> np.ndarray:
+    """Which normalised points (N, 2) look at the road ahead: their ray meets the rig's floor
+    within ROAD_AHEAD_M and ROAD_HALF_WIDTH_M sideways. Why a region: the lower half of a
+    street image holds parked cars and house fronts, planes of their own, and a homography
+    fit to all of it found those (KITTI 07: steps half their length); the lane ahead is road."""
+    rays = np.column_stack([xy, np.ones(len(xy))])
+    s = rays @ down_c / np.linalg.norm(rays, axis=1)
+    ok = s >= np.sin(ROAD_MIN_DEPRESSION_RAD)
+    lam = np.where(ok, height / np.where(ok, rays @ down_c, 1.0), 0.0)
+    X_body = (rays * lam[:, None]) @ R_base_cam.T          # from the camera, in base_link axes
+    return ok & (X_body[:, 0] <= ROAD_AHEAD_M) & (np.abs(X_body[:, 1]) <= ROAD_HALF_WIDTH_M)
 
 
 @dataclass

@@ -92,6 +92,14 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
         # what a subscriber gets: the estimate through its ROS message
         return msg_to_estimate(estimate_to_msg(est), source=source)
 
+    def add_new_bearings(name, q):
+        # the features a quarter extracted after sending its frame's tracks (quarter_node)
+        nb = q.new_bearings()
+        if nb is not None:
+            fusion.add_bearings(name, q.quarter, *nb)
+            result.bearing_messages += 1
+            result.bearing_points += len(nb[1])
+
     def flush():
         if not frame:
             return
@@ -108,6 +116,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             if sends_bearings:
                 # as the quarter nodes publish them; fused from the next frame on
                 for q in estimators[name]:
+                    add_new_bearings(name, q)
                     ids, xy, sigma = q.bearings()
                     fusion.add_bearings(name, q.quarter, frame_stamps[name], ids, xy, sigma)
                     result.bearing_messages += 1
@@ -150,6 +159,8 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
                 for q in qs:
                     if q.takes_feedback(stamp):
                         q.apply_fused_pose(stamp, feedback.T_odom_base, feedback.covariance, gray_b)
+                        if sends_bearings:
+                            add_new_bearings(name, q)
         result.fused.append(fused)
         result.gyro_bias.append(fusion.ekf.gyro_bias)
         result.frame_ms.append((time.perf_counter() - t0) * 1e3)

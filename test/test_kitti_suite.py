@@ -73,7 +73,7 @@ def test_real_road_accuracy(results, name):
 def test_lost_road_tracks_are_found_on_the_road_warped_image(results, check_root):
     """A car's step at 10 Hz makes the near road patches grow and shear: the lower quarters'
     road tracks that Lucas-Kanade loses are searched again on the road-warped image
-    (floor_warp_min_flow_px) and the quarters say how many they found (177 over the drive at
+    (floor_warp_min_flow_px) and the quarters say how many they found (203 over the drive at
     quality_level 0.01); the upper quarters (above the horizon) and a stereo rig (not a road
     rig: no warp) find none."""
     check = check_root / 'check'

@@ -218,3 +218,31 @@ def test_lost_floor_tracks_are_found_on_the_road_warped_image():
     assert np.array_equal(warped.new[both], plain.new[both])
     off, _, _ = run(KLTConfig(floor_warp_min_flow_px=0.0), lambda n: np.ones(n, bool))
     assert np.array_equal(off.ok, plain.ok) and np.array_equal(off.new[off.ok], plain.new[plain.ok])
+
+
+def test_a_plain_region_gets_corners_ranked_against_its_own_best():
+    """A quarter whose right part is plain (asphalt beside a car's edges: a twentieth of the
+    contrast): extraction by grid cell ranks corners against the cell's best and finds none
+    there; extract_in ranks them against the best inside its mask and fills the region,
+    away from the tracks there are and inside the mask only."""
+    strong = texture(5).astype(np.float32)
+    weak = 128.0 + (texture(6).astype(np.float32) - 128.0) / 20.0
+    img = np.where(np.arange(W)[None, :] < 160, strong, weak).round().astype(np.uint8)
+    cfg = KLTConfig(grid_rows=1, grid_cols=1)
+    tr, reg = make(cfg, quarter=1)
+    crop = reg.crop(img)
+    tr.track(0, crop)
+    tr.extract(0)
+    n0 = len(tr.ids)
+    assert n0 >= 20 and not (tr.pts[:, 0] >= 170).any()
+    mask = np.zeros(crop.shape, np.uint8)
+    x0, x1, y1 = 170 - reg.cx0, reg.x1 - reg.cx0, reg.y1 - reg.cy0
+    mask[:y1, x0:x1] = 255
+    n = tr.extract_in(0, mask, (x0, 0, x1, y1), 15)
+    new = tr.pts[n0:]
+    print(f'\nplain region: {n} corners ranked against its own best, none by the cell\'s ({n0} elsewhere)')
+    assert n == 15 and len(tr.ids) == n0 + 15
+    assert (new[:, 0] >= 170).all() and (new[:, 0] < reg.x1).all() and (new[:, 1] < reg.y1).all()
+    gaps = np.linalg.norm(new[:, None] - tr.pts[None, :n0], axis=2)
+    assert gaps.min() >= cfg.min_distance_px
+    assert (tr.hist_t[n0:, 0] == 0).all() and (tr.hist_n[n0:] == 1).all()

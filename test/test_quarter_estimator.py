@@ -253,3 +253,50 @@ def test_tracking_steered_by_the_rotation_is_accurate_and_the_same_prefetched(sw
     assert runs[False][0] == 0
     assert len(errs) >= len(runs[False][1]) - 2           # tracking as often as without
     assert np.median(errs) < 2 * np.median(runs[False][1]) + 1e-3
+
+
+def test_a_road_quarter_keeps_tracks_in_the_lane_and_sends_them_from_their_first_frame():
+    """A camera 1.65 m over a road, looking ahead; its lane is plain asphalt (an eighth of
+    the contrast around it). The bottom-left quarter's grid cells fill up with the strong
+    corners beside the lane; with road_lane_features it also keeps that many tracks in the
+    lane (road_region), ranked against the lane's own best corner. The features extracted
+    after a frame's tracks were sent come out of new_bearings() with that frame's stamp, so
+    the general arbiter can pair that frame with the next (and on a rig without a road,
+    where nothing needs them, none do)."""
+    from camera_pose_nodes.road_plane import road_region
+    from multicam_ego_motion.geometry.rig import CameraMount, optical_rotation
+
+    w, h = 1240, 376                                                # KITTI's image
+    cam = CameraMount('front', '/front/image_raw', '/front/camera_info', 'front_optical',
+                      np.array([0.0, 0.0, 1.65]), optical_rotation(0.0))
+    intr = CameraIntrinsics.pinhole(720.0, 720.0, w / 2, h / 2, w, h)
+    vv, uu = np.mgrid[0:h, 0:w]
+    px = np.column_stack([uu.ravel(), vv.ravel()]).astype(float)
+    lane = road_region(intr.undistort_points(px), cam.rotation.T @ [0, 0, -1.0], cam.rotation,
+                       1.65).reshape(h, w)
+    strong = cv2.resize(wall_texture(4), (w, 900))[:h].astype(np.float32)
+    img = np.where(lane, 128.0 + (strong - 128.0) / 8.0, strong).round().astype(np.uint8)
+
+    def first_frame(lane_features, road=True):
+        est = QuarterEstimator(cam, 3, intr, QuarterParams(road_lane_features=lane_features),
+                               (w, h), 0.0, road)
+        est.process_image(0, img)
+        est.apply_fused_pose(0, np.eye(4), np.eye(6) * 1e-8)        # extracts
+        pts = est.tracker.pts
+        in_lane = lane[pts[:, 1].round().astype(int), pts[:, 0].round().astype(int)]
+        return est, int(in_lane.sum())
+
+    plain, n_plain = first_frame(0)
+    kept, n_kept = first_frame(20)
+    print(f'\nlane tracks: {n_plain} by the grid cells alone, {n_kept} with road_lane_features 20 '
+          f'({len(kept.tracker.ids)} in the quarter)')
+    assert n_plain <= 3 and n_kept >= 20
+    stamp, ids, xy, sigma = kept.new_bearings()
+    assert stamp == 0 and np.array_equal(ids, kept.tracker.ids) and len(xy) == len(sigma) == len(ids)
+    assert np.allclose(xy, intr.undistort_points(kept.tracker.pts))
+    assert kept.new_bearings() is None                              # taken once
+    e = kept.process_image(int(1e8), img)                           # the same view again
+    ids_b, _, _ = kept.bearings()
+    assert e is not None and np.isin(ids, ids_b).mean() > 0.9        # pairs (0, 1) for all of them
+    off_road, _ = first_frame(20, road=False)
+    assert off_road.new_bearings() is None and off_road._lane_shortfall() == 0

@@ -192,3 +192,21 @@ def test_the_road_scale_takes_the_step_measured_on_the_tracks(measured):
         assert total == pytest.approx(1.0, abs=0.03)
     else:
         assert abs(total - 1.0) > 0.05
+
+
+def test_features_sent_after_their_frame_pair_it_with_the_next():
+    """A quarter sends its tracks of frame a, then (new_bearings) the features it extracted on
+    frame a after that: the second message adds to the first, so tracks born on a pair frames
+    a and b; a message repeated adds nothing twice."""
+    rig = one_camera_road_rig()
+    state = ScaleState(rig, default_params())
+    a, b = 1_000_000_000, 1_100_000_000
+    xy = np.array([[0.1, 0.2], [0.0, 0.3], [-0.2, 0.25], [0.05, 0.4]])
+    state.add_bearings('front', 3, a, [1, 2], xy[:2], np.full(2, 1e-3))
+    for _ in range(2):
+        state.add_bearings('front', 3, a, [7, 8], xy[2:], np.full(2, 1e-3))
+    state.add_bearings('front', 3, b, [2, 7, 8, 9], xy + 0.01, np.full(4, 1e-3))
+    (tracks,) = state.tracks_between({}, {}, a, b)
+    assert len(tracks.xa) == 3
+    assert np.allclose(tracks.xa, xy[[1, 2, 3]]) and np.allclose(tracks.xb, xy[:3] + 0.01)
+
