@@ -71,10 +71,15 @@ def test_coordinator_moves_nodes_when_the_left_camera_goes_bare(run):
     assert int(coord[-1].values['rebalances']) == len(rebalances)
     t_move = min(d.t for d in coord if int(d.values['migrations']) > into_left[0])
     assert t_move > START_S + 1.5
-    # what the coordinator answered: the left camera's measured cost fell (bare wall)
+    # what the coordinator answered: the worker it moved into measured the lighter one (its own
+    # loads in the rebalance line; the second before the move is no measure of the wall: the
+    # 10-frame hysteresis can end ~0.3 s into it, read 0.92 of the textured ratio once on CI)
+    into_line = next(l for l in rebalances if f'-> worker {left_worker}' in l)
+    loads = [float(x) for x in into_line.split('worker loads ')[1].split(' -> ')[0].split('/')]
+    assert loads[left_worker] == min(loads), into_line
+    # and the left camera's measured cost fell (bare wall)
     costs = camera_costs(run)
     textured = ratio_left(costs, START_S + 0.5, START_S + 1.5)
-    assert ratio_left(costs, t_move - 1.0, t_move) < 0.9 * textured
     # (about half by the end: 0.48-0.50 of the textured ratio measured; CPU times of a loaded
     # machine move it by a few percent, so the bound is 0.6, far below the textured 1.0)
     assert ratio_left(costs, START_S + DURATION_S - 1.0, START_S + DURATION_S) < 0.6 * textured
