@@ -138,6 +138,41 @@ def test_road_scale_makes_a_known_step_metric(pitch_deg):
         assert abs(level.factor / 1.3 - 1.0) > 0.05
 
 
+def test_road_scale_leans_on_the_near_road_where_the_pitch_matters_least(monkeypatch):
+    """The camera pitched 0.5 deg down from what the rig believes: a road point's depth is off
+    by about pitch x depth / height, so the far tracks read the factor 2-4 times as far off as
+    the near ones; weighted by (1 / depth)^2 the factor is nearer the truth than the plain
+    median of the same tracks."""
+    import camera_pose_nodes.road_plane as road_plane
+    rng = np.random.default_rng(8)
+    xy0, xy1, is_road, c1, level = road_scene(rng, 0.5, n_road=60, n_above=0, noise_px=0.1)
+    R, t = known_motion(xy0, xy1, is_road, c1)
+    weighted = road_scale(xy0, xy1, R, t, level, HEIGHT).factor
+    monkeypatch.setattr(road_plane, 'DEPTH_WEIGHT_POWER', 0.0)
+    plain = road_scale(xy0, xy1, R, t, level, HEIGHT).factor
+    assert abs(plain - 1.0) > 0.04                        # the pitch's bias, visible
+    assert abs(weighted - 1.0) < 0.75 * abs(plain - 1.0)
+
+
+def test_road_scale_drops_a_car_ahead_before_it_weighs_the_near_road(monkeypatch):
+    """A car ahead at nearly the rig's speed: its low points look at the near road and barely
+    move between the frames (a ratio near 0). Kept, the weights that trust the near road follow
+    them; dropped as gross (more than a factor e off the plain median), the factor holds."""
+    import camera_pose_nodes.road_plane as road_plane
+    rng = np.random.default_rng(9)
+    xy0, xy1, is_road, c1, down = road_scene(rng, 0.0, n_road=40, n_above=0)
+    R, t = known_motion(xy0, xy1, is_road, c1)
+    # the car's back at 4-5 m, 0.2-0.5 m above the road (its rays meet the road at 5-7 m),
+    # driving 90 % of the rig's step
+    X = np.column_stack([rng.uniform(-0.8, 0.8, 12), HEIGHT - rng.uniform(0.2, 0.5, 12), rng.uniform(4, 5, 12)])
+    X1 = (X - 0.1 * c1) @ se3.rotvec_to_R([0.0, np.radians(2.0), 0.0])
+    car, car1 = (P[:, :2] / P[:, 2:] + rng.normal(0, 0.3 / FOCAL, (12, 2)) for P in (X, X1))
+    xa, xb = np.vstack([xy0, car]), np.vstack([xy1, car1])
+    assert road_scale(xa, xb, R, t, down, HEIGHT).factor == pytest.approx(1.0, rel=0.03)
+    monkeypatch.setattr(road_plane, 'GROSS_LOG_RATIO', np.inf)
+    assert road_scale(xa, xb, R, t, down, HEIGHT).factor < 0.8
+
+
 def test_road_scale_needs_enough_tracks_in_front():
     rng = np.random.default_rng(6)
     xy0, xy1, is_road, c1, down = road_scene(rng, n_road=5, n_above=0)
@@ -188,10 +223,11 @@ def test_the_road_scale_takes_the_step_measured_on_the_tracks(measured):
                      u_map=np.array([np.cos(tilt), 0.0, np.sin(tilt)]), measured=measured)
     total = np.prod([c.factor for c in commands]) * map_factor
     print(f'\nsteps 0.7 deg off the road, measured step {measured}: the map ends {total:.3f} of the truth')
+    # (1.014 and 0.978 measured; from the path 0.901 with road_scale's plain median)
     if measured:
-        assert total == pytest.approx(1.0, abs=0.03)
+        assert total == pytest.approx(1.0, abs=0.02)
     else:
-        assert abs(total - 1.0) > 0.05
+        assert abs(total - 1.0) > 0.02
 
 
 def test_features_sent_after_their_frame_pair_it_with_the_next():
