@@ -105,11 +105,12 @@ def road_scale(xy0: np.ndarray, xy1: np.ndarray, R: np.ndarray, t: np.ndarray, d
     k is the median of their ratios, each weighted by (1 / its depth)^3, of the tracks within
     a factor e of the plain median. Why weighted: a camera pitch error d moves a road point's
     depth by about d Z / h (Z its depth, h the camera's height), and its flow, which
-    triangulation divides by, falls as 1 / Z^2: on KITTI 07 the ratios at 15-20 m read 20-40 %
-    above those at 6-8 m, which agree with the truth (docs/estimator.md). Why the gross
-    tracks out first: the weights trust the near lane, where a car ahead at the same speed
-    (kitti_seq1) has points that barely move and read k ~ 0.01-0.3. A hard cut at 14 m did as
-    well on KITTI 07 but starved the narrow views of image halves. Why not the homography (fit_road): with the rotation and
+    triangulation divides by, falls as 1 / Z^2: on KITTI 07 the ratios at 13-25 m often read
+    20-40 % (up to 2x) above those at 6-10 m, which agree with the truth (docs/fusion.md). Why
+    the gross tracks out first: the weights trust the near lane, where a car ahead at nearly
+    the rig's speed (kitti_seq1) has points that barely move and read k ~ 0.01-0.3. A hard cut
+    at 14 m did as well on KITTI 07 but starved the narrow views of image halves.
+    Why not the homography (fit_road): with the rotation and
     the direction of travel known, one unknown is left, where a homography fits eight to the
     10-30 road tracks a frame at car speed has; its steps scattered 0.84-1.19 of the truth
     (interquartile, KITTI 07), these 0.94-1.06. The road's normal must be the one the car
