@@ -141,7 +141,7 @@ def test_road_scale_makes_a_known_step_metric(pitch_deg):
 def test_road_scale_leans_on_the_near_road_where_the_pitch_matters_least(monkeypatch):
     """The camera pitched 0.5 deg down from what the rig believes: a road point's depth is off
     by about pitch x depth / height, so the far tracks read the factor 2-4 times as far off as
-    the near ones; weighted by (1 / depth)^2 the factor is nearer the truth than the plain
+    the near ones; weighted by (1 / depth)^3 the factor is nearer the truth than the plain
     median of the same tracks."""
     import camera_pose_nodes.road_plane as road_plane
     rng = np.random.default_rng(8)
