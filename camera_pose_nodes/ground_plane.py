@@ -25,7 +25,7 @@ from camera_pose_nodes.landmark_map import bearings_odom
 MIN_CAMERA_HEIGHT_M = 0.1      # a camera lower than this sees the floor too obliquely to help
 MIN_DEPRESSION_RAD = np.radians(3.0)   # rays nearer the horizon meet the floor too far away
 FLOOR_HEIGHT_SIGMA_M = 0.005   # floor flatness and mount height (1 sigma)
-FLOOR_TILT_SIGMA_RAD = np.radians(0.2)   # body roll/pitch on the floor (1 sigma)
+FLOOR_TILT_SIGMA_RAD = np.radians(0.2)   # body roll/pitch on a level floor (1 sigma; a road's: the caller's)
 CHI2_1DOF_99 = 6.63
 
 
@@ -37,9 +37,13 @@ def floor_plane(T_odom_base: np.ndarray, floor_z: float):
     return n, d
 
 
-def floor_points(r: np.ndarray, c_o: np.ndarray, n: np.ndarray, d: np.ndarray, sigma_n: float):
+def floor_points(r: np.ndarray, c_o: np.ndarray, n: np.ndarray, d: np.ndarray, sigma_n: float,
+                 tilt_sigma_rad: float = FLOOR_TILT_SIGMA_RAD):
     """Where the unit rays r (N, 3) from camera centres c_o (N, 3) (odom) meet the floors
     n . X = d (n (N, 3), d (N,)); sigma_n is the image noise in normalized units.
+
+    tilt_sigma_rad: the body's tilt to the floor (1 sigma), which moves a point's depth by
+    tilt / sin(depression) relative: the far floor is the uncertain one.
 
     Returns (valid (N,), X (N, 3), depth along the ray (N,), covariance (N, 3, 3)); valid is
     False for cameras too close to the floor and rays too near (or above) the horizon."""
@@ -52,7 +56,7 @@ def floor_points(r: np.ndarray, c_o: np.ndarray, n: np.ndarray, d: np.ndarray, s
     # Along the ray: depth = h / s, so dlam/lam = dh/h - ds/s, with s disturbed by the tilt
     # of the body and by the pixel noise; across it, the pixel noise at that depth.
     h_ok = np.where(valid, h, 1.0)
-    rel_var = (FLOOR_HEIGHT_SIGMA_M / h_ok) ** 2 + (FLOOR_TILT_SIGMA_RAD ** 2 + sigma_n ** 2) / s_ok ** 2
+    rel_var = (FLOOR_HEIGHT_SIGMA_M / h_ok) ** 2 + (tilt_sigma_rad ** 2 + sigma_n ** 2) / s_ok ** 2
     rr = np.einsum('ni,nj->nij', r, r)
     C = (lam ** 2 * rel_var)[:, None, None] * rr \
         + ((lam * sigma_n) ** 2)[:, None, None] * (np.eye(3) - rr)
@@ -61,7 +65,7 @@ def floor_points(r: np.ndarray, c_o: np.ndarray, n: np.ndarray, d: np.ndarray, s
 
 def snap_to_floor(X_tri: np.ndarray, C_tri: np.ndarray, R_oc: np.ndarray, c_o: np.ndarray,
                   xy: np.ndarray, T_odom_base: np.ndarray, floor_z: float, tolerance: float,
-                  map_scale_std: float, sigma_n: float):
+                  map_scale_std: float, sigma_n: float, tilt_sigma_rad: float = FLOOR_TILT_SIGMA_RAD):
     """Which triangulated points X_tri (N, 3), covariances C_tri (N, 3, 3), are on the floor,
     judged from one view each (camera R_oc (N, 3, 3), c_o (N, 3), observation xy (N, 2), body
     pose T_odom_base (N, 4, 4)) by their depth along that view's ray against the floor
@@ -72,10 +76,11 @@ def snap_to_floor(X_tri: np.ndarray, C_tri: np.ndarray, R_oc: np.ndarray, c_o: n
     floor pass a loose fixed tolerance, and their floor intersection is too far (the loop's
     scale went from +0.6 to +1.9 % as the tolerance grew from 0.1 to 0.4); a young landmark,
     uncertain along its ray, is still moved onto the floor, an old one must agree closely.
+    tilt_sigma_rad: as floor_points'.
     Returns (mask, floor points (M, 3), covariances (M, 3, 3)) for the masked ones."""
     n, d = floor_plane(T_odom_base, floor_z)
     r = bearings_odom(R_oc, xy)
-    valid, X, lam, C = floor_points(r, c_o, n, d, sigma_n)
+    valid, X, lam, C = floor_points(r, c_o, n, d, sigma_n, tilt_sigma_rad)
     lam_tri = np.einsum('ni,ni->n', X_tri - c_o, r)
     lam_ok = np.where(valid, lam, 0.0)
     var = np.einsum('ni,nij,nj->n', r, C_tri + C, r) + (map_scale_std * lam_ok) ** 2

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from camera_pose_nodes.camera_model import CameraIntrinsics
-from camera_pose_nodes.ground_plane import floor_plane, floor_points, snap_to_floor
+from camera_pose_nodes.ground_plane import FLOOR_TILT_SIGMA_RAD, floor_plane, floor_points, snap_to_floor
 from camera_pose_nodes.klt_tracker import KLTConfig, KLTTracker, margin_for
 from camera_pose_nodes.landmark_map import LandmarkMap, bearings_odom, angle_deg
 from camera_pose_nodes.pose_ekf import PoseEKF
@@ -120,6 +120,7 @@ PARAMETERS = {
     'max_depth': (200.0, 'farthest accepted landmark depth (m)', 1.0, 1e5),
     'ground_plane': (True, 'put landmarks that lie on the floor onto it: their depth is then metric from the camera height (see ground_plane; needs the rig\'s floor_z)', None, None),
     'road_landmarks': (True, "on a road (the rig's floor_level false, no stereo pair), every frame, tracks that moved since the previous frame as the floor does (a plane homography whose normal and height agree with the rig's floor: road_plane) are placed on the floor from the previous fused pose: metric steps at car speed without a wheel or stereo (needs ground_plane)", None, None),
+    'road_tilt_std_deg': (1.0, "on a road (road_landmarks), the body's tilt to the road (1 sigma, deg) in the depth of every point put on it (ground_plane.floor_points: relative std tilt / sin(depression)); a car pitches 1-2 deg to its road when it brakes and a camera's mount to the road is known to about a degree, so the near road carries the scale and the far road (17 % at 15 m under a camera 1.65 m up) little: with ground_plane's indoor 0.2 deg the far points held the map 5-10 % long against the general arbiter's road scale (docs/estimator.md)", 0.01, 10.0),
     'road_min_step': (0.1, 'shortest camera step (m) between two frames at which road_landmarks looks for the floor (shorter: points above it move alike)', 0.001, 10.0),
     'ground_tolerance': (0.3, 'a floor landmark\'s depth is never farther than this fraction from its ray\'s floor intersection', 0.001, 1.0),
     'two_view_init': (True, 'without landmarks, floor or any motion of the fused poses, initialise from two-view geometry on the tracks (essential matrix): rotation and direction of travel, the length from two_view_nominal_speed (see two_view)', None, None),
@@ -197,6 +198,9 @@ class QuarterEstimator:
         self.params = (params or QuarterParams()).validate()
         self.uses_floor = self.params.ground_plane and floor_z is not None
         self.uses_road = self.uses_floor and road and self.params.road_landmarks
+        # the body's tilt to its floor, in the depth of a point put on it (ground_plane)
+        self.floor_tilt_rad = (math.radians(self.params.road_tilt_std_deg) if self.uses_road
+                               else FLOOR_TILT_SIGMA_RAD)
         w, h = image_size if image_size is not None else (intrinsics.width, intrinsics.height)
         self.image_size = (int(w), int(h))
         p = self.params
@@ -818,7 +822,7 @@ class QuarterEstimator:
         N = len(rows)
         valid, X, _, C = floor_points(bearings_odom(np.broadcast_to(R_oc, (N, 3, 3)), xy),
                                       np.broadcast_to(c_o, (N, 3)), np.broadcast_to(n, (N, 3)),
-                                      np.full(N, d), self.landmarks.sigma_n)
+                                      np.full(N, d), self.landmarks.sigma_n, self.floor_tilt_rad)
         self.landmarks.place(ids[valid], X[valid], C[valid])
 
     def _road_landmarks(self, stamp_ns) -> int:
@@ -842,7 +846,7 @@ class QuarterEstimator:
         N = len(rows)
         valid, X, _, C = floor_points(bearings_odom(np.broadcast_to(R_oc, (N, 3, 3)), xy0),
                                       np.broadcast_to(c_o, (N, 3)), np.broadcast_to(n, (N, 3)),
-                                      np.full(N, d), self.landmarks.sigma_n)
+                                      np.full(N, d), self.landmarks.sigma_n, self.floor_tilt_rad)
         if valid.sum() < road_plane.MIN_POINTS:
             return 0
         xy1 = self.intrinsics.undistort_points(tr.pts[rows[valid]].astype(float))
@@ -897,7 +901,7 @@ class QuarterEstimator:
         p = self.params
         on, X_f, C_f = snap_to_floor(X, self.landmarks.covariances_of(ids), R_oc, c_o, xy, T,
                                      self.floor_z, p.ground_tolerance, p.ground_map_scale_std,
-                                     self.landmarks.sigma_n)
+                                     self.landmarks.sigma_n, self.floor_tilt_rad)
         self.landmarks.place(ids[on], X_f, C_f)
 
     def _views(self, rows, cols, fs, R_all, c_all):
