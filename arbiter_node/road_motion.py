@@ -16,8 +16,7 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 
 from arbiter_node.rig_motion_fit import CameraTracks, fit_rig_motion
-from arbiter_node.road_pitch import camera_over_road
-from camera_pose_nodes.road_plane import camera_step, fit_road, road_region
+from camera_pose_nodes.road_plane import camera_over_road, camera_step, fit_road, road_region
 from camera_pose_nodes.two_view import two_view
 from multicam_ego_motion.geometry import se3
 

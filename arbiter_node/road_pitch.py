@@ -63,14 +63,6 @@ class TravelPitch:
         return np.array([-math.sin(p), 0.0, math.cos(p)])
 
 
-def camera_over_road(up_body: np.ndarray, R_base_cam: np.ndarray, centre: np.ndarray, floor_z: float):
-    """(down_c, height_m): the road's normal pointing down in a camera's frame and the
-    camera's height above the road, for the road through the body's (0, 0, floor_z) with
-    normal up_body (body frame; the camera's axes R_base_cam and centre in the body)."""
-    down_c = R_base_cam.T @ -up_body
-    return down_c, float(up_body @ (centre - np.array([0.0, 0.0, floor_z])))
-
-
 WINDOW_PATH_STEPS = 20      # about 2 s at 10 Hz: the steps' directions' noise averages out
 MIN_PATH_M = 1.0            # a shorter path's direction is noise
 

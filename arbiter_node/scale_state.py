@@ -35,8 +35,8 @@ import numpy as np
 
 from arbiter_node.rig_motion_fit import CameraTracks, fit_rig_motion
 from arbiter_node.rig_scale import relative_motion, scale_correction, solve_rig_translation
-from arbiter_node.road_pitch import PathNormal, TravelPitch, camera_over_road
-from camera_pose_nodes.road_plane import camera_step, fit_road, road_region, road_scale
+from arbiter_node.road_pitch import PathNormal, TravelPitch
+from camera_pose_nodes.road_plane import camera_over_road, camera_step, fit_road, road_region, road_scale
 from camera_pose_nodes.map_scale import MapScaleCommand, rescale_filter, scale_positions
 from multicam_ego_motion.geometry import se3
 

@@ -627,8 +627,8 @@ class QuarterEstimator:
         if not len(px):
             return np.zeros(0, bool)
         R = self.T_base_cam[:3, :3]
-        down_c = R.T @ np.array([0.0, 0.0, -1.0])
-        height = float(self.T_base_cam[2, 3] - self.floor_z)
+        down_c, height = road_plane.camera_over_road(np.array([0.0, 0.0, 1.0]), R, self.T_base_cam[:3, 3],
+                                                     self.floor_z)
         return road_plane.road_region(self.intrinsics.undistort_points(px), down_c, R, height)
 
     def _fused_arrays(self):

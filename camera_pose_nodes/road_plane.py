@@ -32,6 +32,14 @@ DEPTH_WEIGHT_POWER = 3.0
 GROSS_LOG_RATIO = 1.0
 
 
+def camera_over_road(up_body: np.ndarray, R_base_cam: np.ndarray, centre: np.ndarray, floor_z: float):
+    """(down_c, height_m): the road's normal pointing down in a camera's frame and the
+    camera's height above the road, for the road through the body's (0, 0, floor_z) with
+    normal up_body (body frame; the camera's axes R_base_cam and centre in the body)."""
+    down_c = R_base_cam.T @ -up_body
+    return down_c, float(up_body @ (centre - np.array([0.0, 0.0, floor_z])))
+
+
 def road_region(xy: np.ndarray, down_c: np.ndarray, R_base_cam: np.ndarray, height: float) -> np.ndarray:
     """Which normalised points (N, 2) look at the road ahead: their ray meets the rig's floor
     within ROAD_AHEAD_M and ROAD_HALF_WIDTH_M sideways. Why a region: the lower half of a
