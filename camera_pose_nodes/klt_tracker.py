@@ -293,7 +293,6 @@ class KLTTracker:
         if crop is None:
             return 0
         cfg, reg = self.cfg, self.region
-        ox, oy = reg.cx0, reg.cy0
         n_cells = cfg.grid_rows * cfg.grid_cols
         cap = math.ceil(cfg.max_features / n_cells)
         xs = np.linspace(reg.x0, reg.x1, cfg.grid_cols + 1).round().astype(int)
@@ -322,23 +321,9 @@ class KLTTracker:
             # Read a padded window so the gradient block sees real pixels at the cell edge.
             wx0, wy0 = max(reg.cx0, x0 - pad), max(reg.cy0, y0 - pad)
             wx1, wy1 = min(reg.cx1, x1 + pad), min(reg.cy1, y1 + pad)
-            sub = crop[wy0 - oy:wy1 - oy, wx0 - ox:wx1 - ox]
-            mask = np.zeros(sub.shape, np.uint8)
+            mask = np.zeros((wy1 - wy0, wx1 - wx0), np.uint8)
             mask[y0 - wy0:y1 - wy0, x0 - wx0:x1 - wx0] = 255
-            # Only features whose exclusion disc reaches this window change the mask.
-            r = int(cfg.min_distance_px)
-            near = existing[(existing[:, 0] > wx0 - r - 1) & (existing[:, 0] < wx1 + r + 1)
-                            & (existing[:, 1] > wy0 - r - 1) & (existing[:, 1] < wy1 + r + 1)]
-            # (as Python floats: iterating the float32 rows cost more than drawing; the
-            # differences are exact in both, pixels being multiples of 2^-15 below 512)
-            for u, v in near.tolist():
-                cv2.circle(mask, (int(round(u - wx0)), int(round(v - wy0))), r, 0, -1)
-            p = cv2.goodFeaturesToTrack(sub, maxCorners=want, qualityLevel=cfg.quality_level,
-                                        minDistance=cfg.min_distance_px, mask=mask,
-                                        blockSize=cfg.block_size)
-            if p is None:
-                return np.zeros((0, 2), np.float32)
-            return p.reshape(-1, 2) + np.array([wx0, wy0], np.float32)
+            return self._corners_in((wx0, wy0, wx1, wy1), mask, want, existing)
 
         found = self._map(corners, cells)
         new = np.concatenate(found).astype(np.float32) if found else np.zeros((0, 2), np.float32)
@@ -352,22 +337,36 @@ class KLTTracker:
         crop = self._cur_crop
         if crop is None or want <= 0:
             return 0
-        cfg, reg = self.cfg, self.region
+        reg = self.region
         x0, y0, x1, y1 = box
-        pad = cfg.block_size
+        pad = self.cfg.block_size
         wx0, wy0 = max(0, x0 - pad), max(0, y0 - pad)
         wx1, wy1 = min(crop.shape[1], x1 + pad), min(crop.shape[0], y1 + pad)
-        m = mask[wy0:wy1, wx0:wx1].copy()
+        window = (reg.cx0 + wx0, reg.cy0 + wy0, reg.cx0 + wx1, reg.cy0 + wy1)
+        return self._add(stamp_ns, self._corners_in(window, mask[wy0:wy1, wx0:wx1].copy(), int(want), self.pts)
+                         .astype(np.float32))
+
+    def _corners_in(self, window, mask: np.ndarray, want: int, existing: np.ndarray) -> np.ndarray:
+        """Up to `want` Shi-Tomasi corners of the current crop within `window` (x0, y0, x1, y1,
+        full-image pixels) where `mask` (the window's size, uint8) is set and no `existing`
+        track (full-image pixels) is nearer than min_distance_px: full-image pixels (M, 2)."""
+        cfg, reg = self.cfg, self.region
+        wx0, wy0, wx1, wy1 = window
+        sub = self._cur_crop[wy0 - reg.cy0:wy1 - reg.cy0, wx0 - reg.cx0:wx1 - reg.cx0]
+        # Only features whose exclusion disc reaches this window change the mask.
         r = int(cfg.min_distance_px)
-        for u, v in self.pts.tolist():
-            cv2.circle(m, (int(round(u - reg.cx0 - wx0)), int(round(v - reg.cy0 - wy0))), r, 0, -1)
-        p = cv2.goodFeaturesToTrack(crop[wy0:wy1, wx0:wx1], maxCorners=int(want),
-                                    qualityLevel=cfg.quality_level, minDistance=cfg.min_distance_px,
-                                    mask=m, blockSize=cfg.block_size)
+        near = existing[(existing[:, 0] > wx0 - r - 1) & (existing[:, 0] < wx1 + r + 1)
+                        & (existing[:, 1] > wy0 - r - 1) & (existing[:, 1] < wy1 + r + 1)]
+        # (as Python floats: iterating the float32 rows cost more than drawing; the
+        # differences are exact in both, pixels being multiples of 2^-15 below 512)
+        for u, v in near.tolist():
+            cv2.circle(mask, (int(round(u - wx0)), int(round(v - wy0))), r, 0, -1)
+        p = cv2.goodFeaturesToTrack(sub, maxCorners=want, qualityLevel=cfg.quality_level,
+                                    minDistance=cfg.min_distance_px, mask=mask,
+                                    blockSize=cfg.block_size)
         if p is None:
-            return 0
-        return self._add(stamp_ns, p.reshape(-1, 2).astype(np.float32)
-                         + np.array([reg.cx0 + wx0, reg.cy0 + wy0], np.float32))
+            return np.zeros((0, 2), np.float32)
+        return p.reshape(-1, 2) + np.array([wx0, wy0], np.float32)
 
     def _add(self, stamp_ns: int, new: np.ndarray) -> int:
         """New tracks at full-image pixels `new`, first seen at stamp_ns."""
