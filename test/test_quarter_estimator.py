@@ -24,14 +24,18 @@ def wall_texture(seed=0):
     return t.astype(np.uint8)
 
 
-def render(tex, K, T_odom_cam):
-    """Pinhole image of the wall: texel (s, t) is the point X0 + s m e1 + t m e2, so the
-    texture->image map is the homography K [R^T m e1, R^T m e2, R^T (X0 - c)]."""
-    X0 = np.array([WALL_X, 6.0, 4.5])
-    e1, e2 = np.array([0, -1.0, 0]), np.array([0, 0, -1.0])
+def render_plane(tex, K, T_odom_cam, X0, e1, e2, texel, size):
+    """Pinhole image (size w, h) of a textured plane: texel (s, t) is the point X0 + s texel
+    e1 + t texel e2, so the texture->image map is the homography K [R^T texel e1, R^T texel e2,
+    R^T (X0 - c)]."""
     Rt, c = T_odom_cam[:3, :3].T, T_odom_cam[:3, 3]
-    Hm = K @ np.column_stack([Rt @ e1 * TEXEL, Rt @ e2 * TEXEL, Rt @ (X0 - c)])
-    return cv2.warpPerspective(tex, Hm, (W, H), flags=cv2.INTER_LINEAR)
+    Hm = K @ np.column_stack([Rt @ np.asarray(e1) * texel, Rt @ np.asarray(e2) * texel, Rt @ (np.asarray(X0) - c)])
+    return cv2.warpPerspective(tex, Hm, size, flags=cv2.INTER_LINEAR)
+
+
+def render(tex, K, T_odom_cam):
+    """Pinhole image of the wall at x = WALL_X."""
+    return render_plane(tex, K, T_odom_cam, [WALL_X, 6.0, 4.5], [0, -1.0, 0], [0, 0, -1.0], TEXEL, (W, H))
 
 
 def true_pose(t):
@@ -322,9 +326,7 @@ def test_a_road_quarter_leans_on_the_near_road_when_the_camera_is_pitched_to_it(
 
     def render_road(T_odom_cam):
         # texel (s, t) is the road point (-2 + 0.02 s, 6 - 0.02 t, 0)
-        Rt, c = T_odom_cam[:3, :3].T, T_odom_cam[:3, 3]
-        Hm = intr.K @ np.column_stack([Rt @ [0.02, 0, 0], Rt @ [0, -0.02, 0], Rt @ ([-2.0, 6.0, 0.0] - c)])
-        return cv2.warpPerspective(road, Hm, (w, h), flags=cv2.INTER_LINEAR)
+        return render_plane(road, intr.K, T_odom_cam, [-2.0, 6.0, 0.0], [1.0, 0, 0], [0, -1.0, 0], 0.02, (w, h))
 
     def step_error(pitch_deg, tilt_deg):
         """Median relative error of the bottom-left quarter's steps, the fused poses true."""
