@@ -108,7 +108,11 @@ PARAMETERS = {
     'road_twist_min_points': (30, 'road_twist: essential-matrix inliers a camera needs', 8, 10000),
     'road_twist_min_parallax_deg': (0.3, 'road_twist: median rotation-compensated parallax a camera needs (deg; below it the direction is noise)', 0.0, 45.0),
     'road_scale_prior_std': (0.1, 'road_scale: the map scale\'s relative std at the start (the road points of one frame are metric to about the camera\'s pitch to the road)', 1e-3, 10.0),
-    'road_scale_std': (0.15, 'road_scale: relative std of one observation (one camera, two frames)', 1e-3, 10.0),
+    'road_scale_std': (0.15, 'road_scale: relative std of one observation (one camera, two frames) from the road homography (before road_pitch knows the road\'s normal)', 1e-3, 10.0),
+    'road_scale_spread_factor': (1.5, 'road_scale_known_step: one observation\'s relative std is this times the spread of its tracks\' ratios (road_plane.RoadScale.relative_std), in quadrature with road_scale_std_floor; on KITTI their errors against the truth scatter 0.9-1.8 times that spread and the floor in quadrature (robust), heavy-tailed', 0.1, 100.0),
+    'road_scale_std_floor': (0.03, 'road_scale_known_step: the least relative std of one observation (the road\'s normal and the camera\'s height are known to about that)', 1e-3, 1.0),
+    'road_scale_drift_per_sqrt_s': (0.02, 'scale_state over a road: the map\'s scale drift per sqrt(s) (scale_drift_per_sqrt_s elsewhere); on KITTI a monocular map grows 5-15 % in 10 s, which the road observes every frame', 0.0, 1.0),
+    'road_scale_snap_about': ('blend', 'scale_state over a road: rescale about `blend` (a point between the last rescale\'s centre and the pose at the last rescale, weighted by the scale\'s variance then against the drift since: the part of the error the map carried from before, the part it grew since), `origin` or `current` (as scale_snap_about)', None, None),
     'road_scale_threshold': (2.5, 'road_scale: RANSAC threshold of the road homography, in point stds', 0.5, 20.0),
     'road_pitch_from_travel': (True, "road_scale, road_twist: the road's normal square to the body's direction of travel (the median slope of the fused steps: road_pitch), not the body's z axis; a camera's pitch to the road is rarely known to a degree (KITTI's: about 1), and 1 deg moves the road's scale by 5-10 %", None, None),
     'road_pitch_window_steps': (20, "road_scale, road_twist: the road's normal square to the path the body drove over its last this many steps (odometry frame), in the body's frame by its rotation then: the body pitches 1-2 deg to the road when it brakes, which the rotation sees and the median slope of the steps in the body's own frame (road_pitch_from_travel) does not; 0: that median alone", 0, 300),
@@ -118,7 +122,7 @@ PARAMETERS = {
     'road_speed': (True, "road_scale: the metric step of the last road observation (the cameras' median) measures the body's forward speed every frame, as a wheel would; the rescales of the map alone left KITTI 07's scale 20 % long after a turn", None, None),
     'road_speed_std': (0.05, 'road_speed: relative std of that speed', 1e-3, 10.0),
     'road_scale_min_step_m': (0.1, 'road_scale: shorter camera steps observe nothing (points above the road move as it does)', 1e-3, 10.0),
-    'scale_snap_about': ('origin', 'scale_state: rescale the map about the odom origin (`origin`: past and future odometry at one scale, a jump now) or the current pose (`current`: no jump, a kink)', None, None),
+    'scale_snap_about': ('origin', 'scale_state: rescale the map about the odom origin (`origin`: past and future odometry at one scale, a jump now), the current pose (`current`: no jump, a kink) or `blend` (road_scale_snap_about)', None, None),
 }
 
 

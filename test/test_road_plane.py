@@ -112,6 +112,51 @@ def test_scale_state_rescales_a_road_map_that_is_too_large():
     assert state.n_road_fits >= 10
 
 
+
+@pytest.mark.parametrize('about', ['origin', 'blend'])
+def test_rescales_of_a_growing_road_map_keep_the_path_driven(about):
+    """A map that grows 2 % a second (a monocular map on a road does, and the road observes it
+    every frame): each rescale corrects the steps since the one before. About the origin each
+    also shrinks the whole path again, which the rescales before had set right: the pose
+    jumps back, and the run ends short; about the blend of the last centre and the pose at
+    the last rescale the path driven keeps its length."""
+    rig = one_camera_road_rig()
+    state = ScaleState(rig, dict(default_params(), road_scale_snap_about=about))
+    rng = np.random.default_rng(6)
+    Xw = np.column_stack([rng.uniform(3, 160, 1200), rng.uniform(-4, 4, 1200), np.zeros(1200)])
+    cam = rig.cameras[0]
+    dt_ns, frames = 100_000_000, 120
+    ids = np.arange(len(Xw))
+    p_map = np.zeros(3)
+    factors = []
+    for k in range(frames):
+        if k:
+            # the map's step: 2 % longer each second than the true 1 m, as the map has grown
+            # since its last rescale (the rescales apply to everything mapped so far)
+            p_map = p_map + np.array([1.0 + 0.02 * k * dt_ns * 1e-9, 0.0, 0.0]) * np.prod(factors or [1.0])
+        T_true = se3.make_T(np.eye(3), [float(k), 0.0, 0.0])
+        Tc = T_true @ cam.T_base_cam
+        Xc = (Xw - Tc[:3, 3]) @ Tc[:3, :3]
+        seen = (Xc[:, 2] > 2.0) & (Xc[:, 2] < 25.0)
+        xy = Xc[seen, :2] / Xc[seen, 2:] + rng.normal(0, 0.3 / FOCAL, (seen.sum(), 2))
+        state.add_bearings('front', 3, k * dt_ns, ids[seen], xy, np.full(seen.sum(), 0.5 / FOCAL))
+        T_map = se3.make_T(np.eye(3), p_map)
+        state.observe(k * dt_ns, T_map, {'front': T_map})
+        c = state.decide(k * dt_ns, T_map)
+        if c is not None:
+            state.pending = None
+            p_map = c.centre + c.factor * (p_map - np.asarray(c.centre))
+            for _, T, _, _ in state.history:
+                T[:3, 3] = c.centre + c.factor * (T[:3, 3] - np.asarray(c.centre))
+            factors.append(c.factor)
+    assert len(factors) >= 3
+    error = abs(p_map[0] - (frames - 1)) / (frames - 1)
+    if about == 'origin':
+        assert error > 0.03        # the whole path shrunk again at every rescale
+    else:
+        assert error < 0.015
+
+
 def known_motion(xy0, xy1, is_road, c1, yaw_deg=2.0):
     """The scene's motion camera 0 -> 1 (X1 = R X0 + t) as road_scale takes it."""
     R01 = se3.rotvec_to_R([0.0, np.radians(yaw_deg), 0.0])
