@@ -173,7 +173,8 @@ def test_road_scale_makes_a_known_step_metric(pitch_deg):
     R, t = known_motion(xy0, xy1, is_road, c1)
     down = se3.rotvec_to_R([np.radians(pitch_deg), 0.0, 0.0]).T @ np.array([0.0, 1.0, 0.0])
     rs = road_scale(xy0, xy1, R, t / 1.3, down, HEIGHT)
-    assert rs is not None and rs.n_points >= 40
+    # every road track counted, the points above the road that read grossly off not
+    assert rs is not None and 30 <= rs.n_points < 45
     assert rs.factor == pytest.approx(1.3, rel=0.03)
     assert 0.0 < rs.relative_std < 0.05
     # the road's normal wrong by the camera's pitch (the rig taken as level): visibly biased,
