@@ -56,6 +56,41 @@ def test_a_sample_is_read_from_the_bytes_a_subscription_takes():
         gyro_sample_from_cdr(serialize_message(msg)[:60])
 
 
+@pytest.mark.parametrize('frame_id', ['', 'i', 'imu', 'imu_lin', 'imu_link', 'imu_link_12'])
+def test_a_sample_reads_whatever_its_frame_name_does_to_the_alignment(frame_id):
+    """The doubles after the header's string are aligned to 8 bytes of the payload: every
+    length of the frame's name, the bytes rclpy and rosbags (the generator) write, and a
+    big-endian message, read as the generic deserializer reads them; every cut one refused."""
+    import struct
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import Imu
+    from multicam_ego_motion.ros_plumbing.imu_messages import IMU_TYPE, gyro_sample_from_cdr
+    from multicam_ego_motion.ros_plumbing.wire_types import from_cdr, to_cdr
+    msg = Imu()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = 12, 345
+    msg.header.frame_id = frame_id
+    values = np.arange(37, dtype=float) * 0.5 - 3.0     # the 37 doubles, in order
+    msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w = values[0:4]
+    msg.orientation_covariance = values[4:13]
+    msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z = values[13:16]
+    msg.angular_velocity_covariance = values[16:25]
+    msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z = values[25:28]
+    msg.linear_acceleration_covariance = values[28:37]
+    by_rclpy = serialize_message(msg)
+    by_rosbags = to_cdr(from_cdr(by_rclpy, IMU_TYPE), IMU_TYPE)
+    name = frame_id.encode() + b'\0'
+    head = struct.pack('>iII', 12, 345, len(name)) + name
+    big_endian = b'\0\0\0\0' + head + b'\0' * (-len(head) % 8) + struct.pack('>37d', *values)
+    for data in (by_rclpy, by_rosbags, big_endian):
+        s = gyro_sample_from_cdr(data)
+        assert s.stamp_ns == 12_000_000_345 and s.frame_id == frame_id
+        assert s.gyro == tuple(values[13:16])
+        np.testing.assert_array_equal(s.gyro_covariance, values[16:25].reshape(3, 3))
+        for cut in range(len(big_endian) - 1):
+            with pytest.raises(ValueError, match=f'{cut} bytes that do not read as sensor_msgs/msg/Imu'):
+                gyro_sample_from_cdr(data[:cut])
+
+
 def test_mean_rate_integrates_a_varying_rate():
     buf = ImuBuffer(np.eye(3))
     w = lambda t: np.array([0.0, 0.0, 2.0 * math.sin(t)])
