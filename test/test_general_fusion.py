@@ -105,6 +105,33 @@ def test_teleported_cameras_gated_then_reinitialised():
     assert np.linalg.norm(se3.pose_error(f.T_odom_base, jump @ truth(24 * 0.05))[:3]) < 0.05
 
 
+def test_a_camera_the_prediction_out_votes_frame_after_frame_restarts_the_filter():
+    """A lone camera, looser than a prediction that fell behind (a car that sped up while the
+    filter dead-reckoned): with the prediction voting in the median (median_use_prior), the
+    median sits on the prediction and rejects the camera there, before the EKF's gate is
+    asked. Such frames count as the gate's refusals do: after max_consecutive_rejections the
+    filter restarts on the camera, where it used to shut it out for good."""
+    rig = dataclasses.replace(RIG, cameras=list(RIG.cameras[:1]))
+    g = GeneralFusion(rig, {'max_consecutive_rejections': 3})
+    rng = np.random.default_rng(5)
+    names = rig.names
+    for k in range(1, 21):
+        g.process(k * DT_NS, cams(rng, truth(k * 0.05), k * DT_NS, names=names))
+    jump = se3.make_T(np.eye(3), [2.0, 0, 0])
+    states = []
+    for k in range(21, 30):
+        # the camera looser than the prediction: its vote outweighs the camera's
+        loose = {n: dataclasses.replace(e, covariance=e.covariance * 25.0)
+                 for n, e in cams(rng, jump @ truth(k * 0.05), k * DT_NS, names=names).items()}
+        f = g.process(k * DT_NS, loose)
+        states.append((f.state, len(f.cameras_used)))
+        if len(states) <= 2:
+            assert all('from the median' in r for r in f.cameras_rejected.values()), f.cameras_rejected
+    assert [s[1] for s in states[:2]] == [0, 0]
+    assert states[2:] == [('tracking', 1)] * 7     # third refusal: restarted on the camera
+    assert np.linalg.norm(se3.pose_error(f.T_odom_base, jump @ truth(29 * 0.05))[:3]) < 0.05
+
+
 def test_rig_scale_hook_reports_scale_observed():
     g = GeneralFusion(RIG)
     rng = np.random.default_rng(4)
