@@ -78,6 +78,7 @@ class ScaleState:
         self.n_road_fits = 0                           # of them from the road (diagnostics)
         self.road_step = None                          # (metric body step, dt) of the last road observation
         self.measured_step = None                      # (stamp a, stamp b, R, t): the rig's motion from its tracks
+        self.known_step_observed = False               # a road_scale_known_step observation was fused
         self.measured_pitches = deque(maxlen=int(params['road_scale_measured_window']))
         self.travel_pitch = TravelPitch() if rig.road_scale and params['road_pitch_from_travel'] else None
         window = int(params['road_pitch_window_steps'])
@@ -320,6 +321,7 @@ class ScaleState:
                 if rs is not None:
                     ks.append(rs.factor)
                     self.n_road_fits += 1
+                    self.known_step_observed = True
                     self._update(rs.factor, math.hypot(p['road_scale_spread_factor'] * rs.relative_std,
                                                        p['road_scale_std_floor']))
                 continue
@@ -356,6 +358,18 @@ class ScaleState:
         if not self.observed or self.pending is not None or self.relative_std > p['scale_snap_relative_std']:
             return None
         if self.epoch > 0 and abs(self.x) < max(p['scale_snap_min_change'], self.relative_std):
+            return None
+        if (self.rig.road_scale and self.epoch == 0 and p['road_scale_first_snap_known_step']
+                and p['road_scale_known_step'] and not self.known_step_observed
+                and abs(self.x) < p['road_scale_std']):
+            # The first rescale is about the origin (the whole path so far): from the road
+            # homography's steps alone (before the road's normal is known) it followed one or
+            # two observations that scatter 15-50 % (kitti_seq1 road: 1.046 where the map was
+            # 20 % long), and the later ones, about the recent path, never set the start right.
+            # Unless those steps moved the scale from the start's by more than one of their
+            # std (road_scale_std): the start is then off beyond their scatter (kitti_seq1
+            # halves started 43 % long; held, 11 frames went out at that scale until the first
+            # known step, 1 s in, then the pose jumped 4.9 m back).
             return None
         about = p['road_scale_snap_about'] if self.rig.road_scale else p['scale_snap_about']
         centre = self.snap_centre(stamp_ns, T_now, about)
