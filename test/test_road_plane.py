@@ -125,7 +125,6 @@ def test_scale_state_rescales_a_road_map_that_is_too_large():
     assert state.n_road_fits >= 10
 
 
-
 class RecordingScaleState(ScaleState):
     """Which observations had been fused when each rescale was commanded."""
 
