@@ -220,6 +220,12 @@ class GeneralFusion:
         heard = self.imu_health.last_heard_ns
         return heard is not None and heard >= stamp_ns
 
+    def _refused(self) -> bool:
+        """Counts a frame whose cameras the filter refused; True once max_consecutive_rejections
+        came in a row: the filter, not the cameras, is most likely wrong by now."""
+        self.rejections += 1
+        return self.rejections >= self.params['max_consecutive_rejections']
+
     def _cameras_settled(self, stamp_ns: int) -> bool:
         """Whether the cameras' fixes may tell the gyro bias (gyro_bias_settle_s)."""
         return (self.first_fix_ns is not None
@@ -348,21 +354,22 @@ class GeneralFusion:
                                                            and not alone) else None
         shift_twist = (self.ekf.twist, self.ekf.twist_covariance)
         camera_estimates = self._with_floor(self._to_common_time(stamp_ns, camera_estimates, *shift_twist))
-        med = median_filter(dict(camera_estimates), p['median_mahalanobis_gate'], p['median_max_translation_m'],
-                            p['median_max_rotation_rad'], prior, p['median_prior_max_cameras'], p['median_weighted'])
+
+        def median(prior):
+            return median_filter(dict(camera_estimates), p['median_mahalanobis_gate'], p['median_max_translation_m'],
+                                 p['median_max_rotation_rad'], prior, p['median_prior_max_cameras'],
+                                 p['median_weighted'])
+
+        med = median(prior)
         restart = False
-        if prior is not None and med.T_median is not None and not med.inliers:
+        if prior is not None and med.T_median is not None and not med.inliers and self._refused():
             # Every camera out-voted by the prediction (one or two cameras, where the prediction
             # ties them) is a fix the filter refused, as one its gate refuses: counted alike,
             # the filter is re-initialised on the cameras alone. Without it, a prediction that
             # dead-reckoned a car through an acceleration fell farther behind each frame and
             # shut its one camera out for good (KITTI 07 at 5 Hz: 17 frames, drift 12 %).
-            self.rejections += 1
-            if self.rejections >= p['max_consecutive_rejections']:
-                med = median_filter(dict(camera_estimates), p['median_mahalanobis_gate'],
-                                    p['median_max_translation_m'], p['median_max_rotation_rad'], None,
-                                    p['median_prior_max_cameras'], p['median_weighted'])
-                restart = bool(med.inliers)
+            med = median(None)
+            restart = bool(med.inliers)
         out_rejected = dict(med.rejected)
         missing = sorted(set(self.rig.names) - set(camera_estimates)) + sorted(med.uninformative)
         used: List[str] = []
@@ -406,12 +413,9 @@ class GeneralFusion:
                     # (fixes the gate refuses are the cameras' outliers, not the gyro's)
                     self.imu_health.camera_residual(stamp_ns, residual, step_s,
                                                     np.linalg.norm(self.ekf.twist[3:]) * step_s)
-                if not camera_update:
-                    self.rejections += 1
-                    if self.rejections >= p['max_consecutive_rejections']:
-                        # the filter, not the cameras, is most likely wrong by now
-                        self.ekf.reinitialize(T_f, cov_f, twist=self.ekf.twist)
-                        camera_update = True
+                if not camera_update and self._refused():
+                    self.ekf.reinitialize(T_f, cov_f, twist=self.ekf.twist)
+                    camera_update = True
             if camera_update:
                 used = names
                 self.rejections = 0

@@ -144,7 +144,7 @@ def road_scale(xy0: np.ndarray, xy1: np.ndarray, R: np.ndarray, t: np.ndarray, d
     k = math.exp(med)
     if not np.isfinite(k):
         return None
-    return RoadScale(k, 1.25 * mad / math.sqrt(len(log_k)), int(len(log_k)))
+    return RoadScale(k, 1.25 * mad / math.sqrt(len(log_k)), len(log_k))
 
 
 def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:

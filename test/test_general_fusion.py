@@ -90,19 +90,29 @@ def test_missing_cameras_and_two_camera_prior_vote():
     assert f.cameras_used == ['front'] and 'back' in f.cameras_rejected
 
 
-def test_teleported_cameras_gated_then_reinitialised():
-    rng = np.random.default_rng(3)
-    g = GeneralFusion(RIG, {'max_consecutive_rejections': 3, 'median_use_prior': False})
+JUMP = se3.make_T(np.eye(3), [2.0, 0, 0])
+
+
+def teleport(g, rng, last_frame, names=None, covariance_scale=1.0):
+    """The rig's cameras track the truth for 20 frames, then report it 2 m off (JUMP) up to
+    last_frame, their covariances times covariance_scale; the fused estimates of the jump."""
     for k in range(1, 21):
-        g.process(k * DT_NS, cams(rng, truth(k * 0.05), k * DT_NS))
-    jump = se3.make_T(np.eye(3), [2.0, 0, 0])
-    states = []
-    for k in range(21, 25):
-        f = g.process(k * DT_NS, cams(rng, jump @ truth(k * 0.05), k * DT_NS))
-        states.append((f.state, len(f.cameras_used)))
+        g.process(k * DT_NS, cams(rng, truth(k * 0.05), k * DT_NS, names=names))
+    out = []
+    for k in range(21, last_frame + 1):
+        jumped = {n: dataclasses.replace(e, covariance=e.covariance * covariance_scale)
+                  for n, e in cams(rng, JUMP @ truth(k * 0.05), k * DT_NS, names=names).items()}
+        out.append(g.process(k * DT_NS, jumped))
+    return out
+
+
+def test_teleported_cameras_gated_then_reinitialised():
+    g = GeneralFusion(RIG, {'max_consecutive_rejections': 3, 'median_use_prior': False})
+    fused = teleport(g, np.random.default_rng(3), 24)
+    states = [(f.state, len(f.cameras_used)) for f in fused]
     assert states[:2] == [('dead_reckoning', 0), ('dead_reckoning', 0)]
     assert states[2] == ('tracking', 4)             # third rejection: re-initialised on the cameras
-    assert np.linalg.norm(se3.pose_error(f.T_odom_base, jump @ truth(24 * 0.05))[:3]) < 0.05
+    assert np.linalg.norm(se3.pose_error(fused[-1].T_odom_base, JUMP @ truth(24 * 0.05))[:3]) < 0.05
 
 
 def test_a_camera_the_prediction_out_votes_frame_after_frame_restarts_the_filter():
@@ -113,23 +123,14 @@ def test_a_camera_the_prediction_out_votes_frame_after_frame_restarts_the_filter
     filter restarts on the camera, where it used to shut it out for good."""
     rig = dataclasses.replace(RIG, cameras=list(RIG.cameras[:1]))
     g = GeneralFusion(rig, {'max_consecutive_rejections': 3})
-    rng = np.random.default_rng(5)
-    names = rig.names
-    for k in range(1, 21):
-        g.process(k * DT_NS, cams(rng, truth(k * 0.05), k * DT_NS, names=names))
-    jump = se3.make_T(np.eye(3), [2.0, 0, 0])
-    states = []
-    for k in range(21, 30):
-        # the camera looser than the prediction: its vote outweighs the camera's
-        loose = {n: dataclasses.replace(e, covariance=e.covariance * 25.0)
-                 for n, e in cams(rng, jump @ truth(k * 0.05), k * DT_NS, names=names).items()}
-        f = g.process(k * DT_NS, loose)
-        states.append((f.state, len(f.cameras_used)))
-        if len(states) <= 2:
-            assert all('from the median' in r for r in f.cameras_rejected.values()), f.cameras_rejected
+    # the camera looser than the prediction: its vote outweighs the camera's
+    fused = teleport(g, np.random.default_rng(5), 29, names=rig.names, covariance_scale=25.0)
+    for f in fused[:2]:
+        assert all('from the median' in r for r in f.cameras_rejected.values()), f.cameras_rejected
+    states = [(f.state, len(f.cameras_used)) for f in fused]
     assert [s[1] for s in states[:2]] == [0, 0]
     assert states[2:] == [('tracking', 1)] * 7     # third refusal: restarted on the camera
-    assert np.linalg.norm(se3.pose_error(f.T_odom_base, jump @ truth(29 * 0.05))[:3]) < 0.05
+    assert np.linalg.norm(se3.pose_error(fused[-1].T_odom_base, JUMP @ truth(29 * 0.05))[:3]) < 0.05
 
 
 def test_rig_scale_hook_reports_scale_observed():

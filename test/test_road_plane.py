@@ -126,12 +126,16 @@ def test_scale_state_rescales_a_road_map_that_is_too_large():
 
 
 class RecordingScaleState(ScaleState):
-    """Which observations had been fused when each rescale was commanded."""
+    """Whether a known-step observation had been fused when each rescale was commanded."""
+
+    def __init__(self, rig, params):
+        super().__init__(rig, params)
+        self.at_commands = []
 
     def decide(self, stamp_ns, T_now):
         c = super().decide(stamp_ns, T_now)
         if c is not None:
-            self.at_commands = getattr(self, 'at_commands', []) + [self.known_step_observed]
+            self.at_commands.append(self.known_step_observed)
         return c
 
 
