@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Vector3Stamped
 from nav_msgs.msg import Odometry, Path
 from sensor_msgs.msg import Imu, PointCloud2
 from rclpy.node import Node
@@ -98,6 +98,8 @@ class GeneralArbiterNode(Node):
         # Latched too: map rescales (map_scale), each applied from a given frame on.
         self.pub_map_scale = self.create_publisher(Int64MultiArray, '/ego_motion/map_scale', LATCHED)
         self.map_scale_epoch = 0
+        # Over a road: the road's normal the quarters put their road points on (road_normal)
+        self.pub_road_normal = self.create_publisher(Vector3Stamped, '/ego_motion/road_normal', RELIABLE)
         self.pub_fused = self.create_publisher(PoseWithCovarianceStamped, '/ego_motion/fused_pose', RELIABLE)
         self.pub_odom = self.create_publisher(Odometry, '/odom', RELIABLE)
         self.pub_tf = self.create_publisher(TFMessage, '/tf', RELIABLE)
@@ -259,6 +261,7 @@ class GeneralArbiterNode(Node):
                 continue
             self.govern(g.stamp_ns)
             self.publish_map_scale()
+            self.publish_road_normal(g.stamp_ns)
             self.publish(fused, g, ms)
             if self.on_frame_done is not None:
                 self.on_frame_done(self)
@@ -283,6 +286,17 @@ class GeneralArbiterNode(Node):
                 f'{self.governor.achieved_rate_hz():.1f} of {self.governor.camera_rate_hz():.1f} Hz, from '
                 f'{schedule.from_ns / 1e9:.3f} s' if schedule.keep < schedule.stride else
                 f'caught up: processing every frame from {schedule.from_ns / 1e9:.3f} s')
+
+    def publish_road_normal(self, stamp_ns):
+        """The road's normal at this frame, before its fused pose (the quarters use it from the
+        next frame's on)."""
+        up = self.fusion.road_normal(stamp_ns)
+        if up is not None:
+            msg = Vector3Stamped()
+            msg.header.stamp = ns_to_stamp(stamp_ns)
+            msg.header.frame_id = self.p['base_frame']
+            msg.vector.x, msg.vector.y, msg.vector.z = (float(v) for v in up)
+            self.pub_road_normal.publish(msg)
 
     def publish_map_scale(self):
         """A new map rescale, before the fused pose (it applies from the next frame on)."""

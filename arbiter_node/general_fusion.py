@@ -661,3 +661,12 @@ class GeneralFusion:
     def map_scale_command(self):
         """The latest map rescale (camera_pose_nodes/map_scale), None before any."""
         return self.scale.command
+
+    def road_normal(self, stamp_ns: int) -> Optional[np.ndarray]:
+        """The road's normal (up, base_link) at frame stamp_ns for the quarters' road points
+        (QuarterEstimator.add_road_normal): the road scale's own (road_pitch), once the direction
+        of travel is known; None before, and off a road (the body's z then)."""
+        sc = self.scale
+        if not (self.rig.road_scale and sc.travel_pitch is not None and sc.travel_pitch.pitch_rad is not None):
+            return None
+        return sc.road_up(stamp_ns)

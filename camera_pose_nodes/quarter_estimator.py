@@ -33,8 +33,9 @@ from multicam_ego_motion.geometry.se3 import R_to_rotvec, rotvec_to_R
 
 # Fused poses come back at the stamps a quarter tracked, within a feedback timeout or so.
 OWN_STAMPS_KEPT = 32
+ROAD_NORMALS_KEPT = 64       # road normals waiting for a fused pose (one a frame)
 
-STATE_VERSION = 11    # 11: new bearings; 10: motion with translation; 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays; 6: motion; 7: stereo partner; 8: map scale; 9: own stamps
+STATE_VERSION = 12    # 12: road normal; 11: new bearings; 10: motion with translation; 2: landmark covariances; 3: floor flags; 4: extract_ms; 5: arrays; 6: motion; 7: stereo partner; 8: map scale; 9: own stamps
 STAGES = ('acquire', 'extract', 'track', 'pose', 'structure')
 _ROTATION_ONLY_POSITION_VARIANCE = 1.0e2   # m^2: 'position not measured', still < UNINFORMATIVE
 _TRIANGULATION_VIEWS = 5     # views per DLT: oldest, newest and evenly spaced between
@@ -67,6 +68,16 @@ def feature_scale(image_size, scale_max: float) -> float:
     the features: ATE + final drift over 14 KITTI cases and variants 733 -> 428 %."""
     w, h = image_size
     return float(np.clip(math.sqrt((w / 2) * (h / 2) / (160.0 * 120.0)), 1.0, scale_max))
+
+
+def road_normal_of(up_base, source: str) -> np.ndarray:
+    """A road normal given in base_link as a unit vector; UserError naming it when it is not a
+    road's (not finite, not unit, or more than 60 degrees from base_link's z)."""
+    up = np.asarray(up_base, float).reshape(3)
+    n = float(np.linalg.norm(up))
+    if not (np.all(np.isfinite(up)) and abs(n - 1.0) < 1e-3 and up[2] > 0.5):
+        raise UserError(f'{source}: road normal {up.tolist()} is not a unit vector within 60 deg of base_link z')
+    return up / n
 
 
 def _members(a: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
@@ -121,6 +132,7 @@ PARAMETERS = {
     'ground_plane': (True, 'put landmarks that lie on the floor onto it: their depth is then metric from the camera height (see ground_plane; needs the rig\'s floor_z)', None, None),
     'road_landmarks': (True, "on a road (the rig's floor_level false, no stereo pair), every frame, tracks that moved since the previous frame as the floor does (a plane homography whose normal and height agree with the rig's floor: road_plane) are placed on the floor from the previous fused pose: metric steps at car speed without a wheel or stereo (needs ground_plane)", None, None),
     'road_tilt_std_deg': (1.0, "on a road (road_landmarks), the body's tilt to the road (1 sigma, deg) in the depth of every point put on it (ground_plane.floor_points: relative std tilt / sin(depression)); a car pitches 1-2 deg to its road when it brakes and a camera's mount to the road is known to about a degree, so the near road carries the scale and the far road (17 % at 15 m under a camera 1.65 m up) little: with ground_plane's indoor 0.2 deg the far points held the map 5-10 % long against the general arbiter's road scale (docs/estimator.md)", 0.01, 10.0),
+    'road_normal': (True, "on a road (road_landmarks), its points are put on the road the general arbiter's road scale stands on (its normal from the direction of travel, road_pitch; add_road_normal), not on the plane square to the body's z axis: a camera is a degree or so pitched to its road (KITTI's: about 1 deg down), which put the road's far points 5-20 % too far, every step read that much long and the road scale cut the maps back 2 % every few frames (docs/estimator.md)", None, None),
     'road_min_step': (0.1, 'shortest camera step (m) between two frames at which road_landmarks looks for the floor (shorter: points above it move alike)', 0.001, 10.0),
     'ground_tolerance': (0.3, 'a floor landmark\'s depth is never farther than this fraction from its ray\'s floor intersection', 0.001, 1.0),
     'two_view_init': (True, 'without landmarks, floor or any motion of the fused poses, initialise from two-view geometry on the tracks (essential matrix): rotation and direction of travel, the length from two_view_nominal_speed (see two_view)', None, None),
@@ -268,6 +280,18 @@ class QuarterEstimator:
         self.scale_epoch = 0         # map rescales applied (map_scale)
         self._two_view_ref = None    # stamp of the view a two-view initialisation started from
         self._scale_pending = []     # map-scale commands waiting for their frame
+        self._road_pending = []      # (stamp, road normal in base_link) not yet in use
+        self.road_up = None          # the road's normal in use (base_link); None: the body's z
+
+    def add_road_normal(self, stamp_ns: int, up_base) -> None:
+        """The general arbiter's road normal at its frame stamp_ns (base_link, unit; road_normal):
+        used from the next frame's fused pose on (apply_fused_pose takes the newest one older
+        than its own stamp), so a lockstep replay does not depend on which message came first."""
+        up = road_normal_of(up_base, self.source)
+        if self.uses_road and self.params.road_normal:
+            self._road_pending.append((int(stamp_ns), up))
+            self._road_pending.sort(key=lambda sv: sv[0])
+            del self._road_pending[:-ROAD_NORMALS_KEPT]
 
     def takes_feedback(self, stamp_ns: int) -> bool:
         """Whether a fused pose at `stamp_ns` is this quarter's: one of its own frames (or
@@ -734,6 +758,8 @@ class QuarterEstimator:
         while self._scale_pending and stamp_ns >= self._scale_pending[0].from_ns:
             map_scale.rescale_quarter(self, self._scale_pending.pop(0))
         first = not self.fused_poses
+        while self._road_pending and self._road_pending[0][0] < stamp_ns:
+            self.road_up = self._road_pending.pop(0)[1]
         if self.ekf.stamp_ns is None:
             self.ekf.reset(T)
             self.ekf.stamp_ns = stamp_ns
@@ -818,7 +844,7 @@ class QuarterEstimator:
         ids = tr.ids[rows]
         R_oc, c_o = self._camera_pose(T)
         xy = self.intrinsics.undistort_points(tr.last_px()[rows])
-        n, d = floor_plane(T, self.floor_z)
+        n, d = floor_plane(T, self.floor_z, self.road_up)
         N = len(rows)
         valid, X, _, C = floor_points(bearings_odom(np.broadcast_to(R_oc, (N, 3, 3)), xy),
                                       np.broadcast_to(c_o, (N, 3)), np.broadcast_to(n, (N, 3)),
@@ -842,7 +868,7 @@ class QuarterEstimator:
         T0 = self.fused_poses[s0]
         R_oc, c_o = self._camera_pose(T0)
         xy0 = self.intrinsics.undistort_points(tr.hist_uv[rows, prev].astype(float))
-        n, d = floor_plane(T0, self.floor_z)
+        n, d = floor_plane(T0, self.floor_z, self.road_up)
         N = len(rows)
         valid, X, _, C = floor_points(bearings_odom(np.broadcast_to(R_oc, (N, 3, 3)), xy0),
                                       np.broadcast_to(c_o, (N, 3)), np.broadcast_to(n, (N, 3)),
@@ -901,7 +927,7 @@ class QuarterEstimator:
         p = self.params
         on, X_f, C_f = snap_to_floor(X, self.landmarks.covariances_of(ids), R_oc, c_o, xy, T,
                                      self.floor_z, p.ground_tolerance, p.ground_map_scale_std,
-                                     self.landmarks.sigma_n, self.floor_tilt_rad)
+                                     self.landmarks.sigma_n, self.floor_tilt_rad, self.road_up)
         self.landmarks.place(ids[on], X_f, C_f)
 
     def _views(self, rows, cols, fs, R_all, c_all):
@@ -941,7 +967,9 @@ class QuarterEstimator:
                 'partner': self.partner, 'own_stamps': list(self.own_stamps),
                 'scale_epoch': self.scale_epoch, 'two_view_ref': self._two_view_ref,
                 'scale_pending': [c.to_list() for c in self._scale_pending],
-                'new_bearings': self._new_bearings}
+                'new_bearings': self._new_bearings,
+                'road_up': None if self.road_up is None else self.road_up.tolist(),
+                'road_pending': [(t, v.tolist()) for t, v in self._road_pending]}
 
     def set_state(self, s: dict):
         if s.get('version') != STATE_VERSION:
@@ -972,3 +1000,5 @@ class QuarterEstimator:
         self._two_view_ref = s['two_view_ref']
         self._scale_pending = [map_scale.MapScaleCommand.from_list(c) for c in s['scale_pending']]
         self._new_bearings = s['new_bearings']
+        self.road_up = None if s['road_up'] is None else np.array(s['road_up'], float)
+        self._road_pending = [(int(t), np.array(v, float)) for t, v in s['road_pending']]

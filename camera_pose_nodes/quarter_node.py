@@ -23,7 +23,7 @@ from collections import deque
 import numpy as np
 
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseWithCovarianceStamped
+from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_msgs.msg import Int64MultiArray
@@ -34,7 +34,7 @@ from camera_pose_nodes.frame_schedule import FrameSchedule, ScheduleBook
 from camera_pose_nodes.map_scale import MapScaleCommand
 from camera_pose_nodes.decoded_images import SHARED as DECODED
 from camera_pose_nodes.image_conversion import bgr8_message
-from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, QuarterParams
+from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, QuarterParams, road_normal_of
 from multicam_ego_motion.ros_plumbing import diagnostics
 from multicam_ego_motion.ros_plumbing.bearing_messages import bearings_to_cdr
 from multicam_ego_motion.errors import UserError
@@ -62,6 +62,7 @@ NODE_PARAMETERS = {
     'frame_schedule_topic': ('/ego_motion/frame_schedule', 'which frames to process when the graph is behind the cameras (general arbiter)', None, None),
     'partner_timeout_s': (5.0, 'stereo pair: longest hold of a fused pose for the partner camera\'s image of its frame (then applied without stereo matches)', 0.0, 600.0),
     'map_scale_topic': ('/ego_motion/map_scale', 'map rescales of the general arbiter when a scale source appears (camera_pose_nodes/map_scale)', None, None),
+    'road_normal_topic': ('/ego_motion/road_normal', "the general arbiter's road normal (base_link) at each frame over a road: the road points are put on it (road_normal)", None, None),
     'debug_images': (False, 'publish tracks (bgr8): this quarter\'s part of the image with its features, their flow and landmark/epipolar status drawn, which the camera arbiter (debug_images too) puts together into /<cam>/tracks; off: nothing drawn or published', None, None),
 }
 
@@ -106,6 +107,8 @@ class QuarterNode(Node):
         self.source = f'{self.camera.name}/q{self.quarter}'
         self.feedback_timeout_s = p['feedback_timeout_s']
         self.scale_commands = []        # map rescales (map_scale), kept for a late CameraInfo
+        self.road_normals = deque(maxlen=4)   # the newest road normals, kept for a late CameraInfo
+        self.road_normal_error = None   # the last bad road normal said (not said again)
         self.schedule = ScheduleBook()  # frames skipped while the graph is behind (frame_schedule)
         self.skipped = 0                # images skipped since the last report
         self.estimator = None
@@ -143,6 +146,7 @@ class QuarterNode(Node):
         # (the schedule first: an executor takes ready subscriptions in creation order)
         self.inputs = {p['frame_schedule_topic']: (Int64MultiArray, LATCHED, self.on_schedule),
                        p['map_scale_topic']: (Int64MultiArray, LATCHED, self.on_map_scale),
+                       p['road_normal_topic']: (Vector3Stamped, RELIABLE, self.on_road_normal),
                        self.camera.input_topic: (IMAGE_TYPES[self.camera.transport],
                                                  image_qos(p['image_qos']), self.on_image),
                        p['fused_pose_topic']: (PoseWithCovarianceStamped, RELIABLE, self.on_fused)}
@@ -175,6 +179,8 @@ class QuarterNode(Node):
                                           (msg.width, msg.height), self.floor_z, self.road)
         for command in self.scale_commands:
             self.estimator.rescale_command(command)
+        for stamp_ns, up in self.road_normals:
+            self.estimator.add_road_normal(stamp_ns, up)
         self.connect_partner()
         self.stop_camera_info()
 
@@ -261,6 +267,19 @@ class QuarterNode(Node):
         self.scale_commands.append(command)
         if self.estimator is not None:
             self.estimator.rescale_command(command)
+
+    def on_road_normal(self, msg: Vector3Stamped):
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        try:
+            up = road_normal_of((msg.vector.x, msg.vector.y, msg.vector.z), self.source)
+        except UserError as e:
+            if self.road_normal_error != str(e):
+                self.road_normal_error = str(e)
+                self.get_logger().error(f'{e}: ignored (the last good one stays in use)')
+            return
+        self.road_normals.append((stamp_ns, up))
+        if self.estimator is not None:
+            self.estimator.add_road_normal(stamp_ns, up)
 
     def on_fused(self, msg: PoseWithCovarianceStamped):
         stamp_ns = stamp_to_ns(msg.header.stamp)

@@ -35,7 +35,8 @@ def test_topic_parameters_from_overrides_then_params_file_then_defaults(tmp_path
     params = tmp_path / 'params.yaml'
     params.write_text('/**/general_arbiter:\n  ros__parameters:\n    wheel_odometry_topic: /base/odom\n')
     assert topic_parameter_values(str(params)) == [
-        '/ego_motion/fused_pose', '/ego_motion/frame_schedule', '/ego_motion/map_scale', '/base/odom']
+        '/ego_motion/fused_pose', '/ego_motion/frame_schedule', '/ego_motion/map_scale', '/ego_motion/road_normal',
+        '/base/odom']
     assert topic_parameter_values(str(params), {'general_arbiter': {'wheel_odometry_topic': '/w'}})[-1] == '/w'
 
 

@@ -328,14 +328,18 @@ def test_a_road_quarter_leans_on_the_near_road_when_the_camera_is_pitched_to_it(
         # texel (s, t) is the road point (-2 + 0.02 s, 6 - 0.02 t, 0)
         return render_plane(road, intr.K, T_odom_cam, [-2.0, 6.0, 0.0], [1.0, 0, 0], [0, -1.0, 0], 0.02, (w, h))
 
-    def step_error(pitch_deg, tilt_deg):
-        """Median relative error of the bottom-left quarter's steps, the fused poses true."""
+    def step_error(pitch_deg, tilt_deg, road_normal=False):
+        """Median relative error of the bottom-left quarter's steps, the fused poses true;
+        road_normal: given the road's normal as the rig's mount sees it (add_road_normal)."""
         T_bc = cam.T_base_cam.copy()
-        T_bc[:3, :3] = se3.rotvec_to_R([0.0, np.radians(pitch_deg), 0.0]) @ T_bc[:3, :3]
+        R_pitch = se3.rotvec_to_R([0.0, np.radians(pitch_deg), 0.0])
+        T_bc[:3, :3] = R_pitch @ T_bc[:3, :3]
         est = QuarterEstimator(cam, 3, intr, QuarterParams(road_tilt_std_deg=tilt_deg), (w, h), 0.0, True)
         ratios = []
         for k in range(14):
             T = se3.make_T(np.eye(3), [k * step, 0.0, 0.0])
+            if road_normal:
+                est.add_road_normal(int(k * 1e8), R_pitch.T @ [0.0, 0.0, 1.0])
             e = est.process_image(int(k * 1e8), render_road(T @ T_bc))
             if k >= 2 and e is not None and e.state == 'tracking':
                 ratios.append((e.T_odom_base[0, 3] - (k - 1) * step) / step)
@@ -351,3 +355,43 @@ def test_a_road_quarter_leans_on_the_near_road_when_the_camera_is_pitched_to_it(
         assert abs(err[(p, 1.0)]) < 0.8 * abs(err[(p, 0.2)]), p
     assert abs(err[(1.0, 1.0)]) < 0.08
     assert abs(err[(0.0, 1.0)]) < 0.02
+    # Given the road's normal (the general arbiter's, from the direction of travel), the road
+    # points land where they are and the steps are metric whichever way the camera is pitched.
+    mended = {p: step_error(p, 1.0, road_normal=True) for p in (1.0, -1.0)}
+    print('with the road normal: ' + ', '.join(f'{p:+.0f} deg: {e:+.3f}' for p, e in mended.items()))
+    for p, e in mended.items():
+        assert abs(e) < 0.02 and abs(e) < 0.5 * abs(err[(p, 1.0)]), p
+
+
+def test_the_road_normal_holds_from_the_next_fused_pose_and_a_bad_one_is_refused():
+    """The general arbiter's road normal at frame k is used from the fused pose after k's on
+    (so a lockstep replay does not depend on which of the two messages came first), it travels
+    with the quarter's state to another worker, and a vector that is no road's normal is
+    refused with its values named. Off a road it changes nothing."""
+    from multicam_ego_motion.geometry.rig import CameraMount, optical_rotation
+
+    cam = CameraMount('front', '/front/image_raw', '/front/camera_info', 'front_optical',
+                      np.array([0.0, 0.0, 1.65]), optical_rotation(0.0))
+    intr = CameraIntrinsics.pinhole(720.0, 720.0, 620.0, 188.0, 1240, 376)
+    est = QuarterEstimator(cam, 3, intr, QuarterParams(), (1240, 376), 0.0, True)
+    up = se3.rotvec_to_R([0.0, np.radians(-1.0), 0.0]) @ [0.0, 0.0, 1.0]
+    img = np.full((376, 1240), 128, np.uint8)
+    est.process_image(0, img)
+    est.add_road_normal(0, up)
+    est.apply_fused_pose(0, np.eye(4), np.eye(6) * 1e-8)
+    assert est.road_up is None                          # frame 0's normal: from frame 1 on
+    est.process_image(int(1e8), img)
+    moved = est.get_state()
+    est.apply_fused_pose(int(1e8), np.eye(4), np.eye(6) * 1e-8)
+    np.testing.assert_allclose(est.road_up, up)
+    other = QuarterEstimator(cam, 3, intr, QuarterParams(), (1240, 376), 0.0, True)
+    other.set_state(pickle.loads(pickle.dumps(moved)))
+    other.apply_fused_pose(int(1e8), np.eye(4), np.eye(6) * 1e-8)
+    np.testing.assert_allclose(other.road_up, up)
+    for bad in ([0.0, 0.0, 2.0], [1.0, 0.0, 0.0], [np.nan, 0.0, 1.0]):
+        with pytest.raises(UserError, match='road normal'):
+            est.add_road_normal(int(2e8), bad)
+    indoor = QuarterEstimator(cam, 3, intr, QuarterParams(), (1240, 376), 0.0, False)
+    indoor.add_road_normal(0, up)
+    indoor.apply_fused_pose(int(1e8), np.eye(4), np.eye(6) * 1e-8)
+    assert indoor.road_up is None

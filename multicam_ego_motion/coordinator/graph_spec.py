@@ -61,9 +61,10 @@ def graph_nodes(rig: Rig, rig_file: str, quarters: int = 4, overrides: Dict[str,
 
 # Topics the nodes (and their worker) name absolutely in their code: outputs, links, inputs.
 FIXED_TOPICS = ('/odom', '/tf', '/diagnostics', '/ego_motion/fused_pose', '/ego_motion/path',
-                '/ego_motion/frame_schedule', '/ego_motion/map_scale')
+                '/ego_motion/frame_schedule', '/ego_motion/map_scale', '/ego_motion/road_normal')
 # Their topic parameters, per node name of the params file and kind of the overrides.
-TOPIC_PARAMETERS = {('quarter_node', 'quarter'): ('fused_pose_topic', 'frame_schedule_topic', 'map_scale_topic'),
+TOPIC_PARAMETERS = {('quarter_node', 'quarter'): ('fused_pose_topic', 'frame_schedule_topic', 'map_scale_topic',
+                                                 'road_normal_topic'),
                     ('general_arbiter', 'general_arbiter'): ('wheel_odometry_topic',)}
 
 
