@@ -666,7 +666,7 @@ class GeneralFusion:
         """The road's normal (up, base_link) at frame stamp_ns for the quarters' road points
         (QuarterEstimator.add_road_normal): the road scale's own (road_pitch), once the direction
         of travel is known; None before, and off a road (the body's z then)."""
-        sc = self.scale
-        if not (self.rig.road_scale and sc.travel_pitch is not None and sc.travel_pitch.pitch_rad is not None):
+        travel = self.scale.travel_pitch           # (None off a road)
+        if travel is None or travel.pitch_rad is None:
             return None
-        return sc.road_up(stamp_ns)
+        return self.scale.road_up(stamp_ns)
