@@ -123,7 +123,7 @@ def road_scale(xy0: np.ndarray, xy1: np.ndarray, R: np.ndarray, t: np.ndarray, d
     10-30 road tracks a frame at car speed has; its steps scattered 0.84-1.19 of the truth
     (interquartile, KITTI 07), these 0.94-1.06. The road's normal must be the one the car
     drives on (road_pitch): 1 deg of camera pitch moves k by 5-10 %.
-    None with fewer than min_points usable tracks."""
+    None with fewer than min_points usable tracks, or when none is near the plain median."""
     r0 = np.column_stack([xy0, np.ones(len(xy0))])
     a = r0 @ R.T
     # x1 (d a_z + t_z) = d a_xy + t_xy  ->  d (x1 a_z - a_xy) = t_xy - x1 t_z, per track
@@ -138,6 +138,10 @@ def road_scale(xy0: np.ndarray, xy1: np.ndarray, R: np.ndarray, t: np.ndarray, d
     log_k = np.log(height_m / toward_road[ok]) - np.log(depth[ok])
     weight = toward_road[ok] ** DEPTH_WEIGHT_POWER      # toward_road = h / Z
     sane = np.abs(log_k - np.median(log_k)) <= GROSS_LOG_RATIO
+    if not sane.any():
+        # an even count split in two groups further apart than that: the plain median lies
+        # between them and no track agrees with it (a car ahead as large as the road seen)
+        return None
     log_k, weight = log_k[sane], weight[sane]
     med = _weighted_median(log_k, weight)
     mad = 1.4826 * float(np.median(np.abs(log_k - med)))

@@ -248,6 +248,22 @@ def test_road_scale_drops_a_car_ahead_before_it_weighs_the_near_road(monkeypatch
     assert road_scale(xa, xb, R, t, down, HEIGHT).factor < 0.8
 
 
+def test_road_scale_observes_nothing_when_the_tracks_split_in_two_groups():
+    """As many tracks on a car ahead (at 95 % of the rig's speed: ratios near 0.05) as on the
+    road: the plain median lies between the groups, a factor e^1.5 from each, so no track is
+    near it. No factor then (the road is not told apart from the car), and no error: the
+    general arbiter's scale step runs on every frame of a real drive."""
+    rng = np.random.default_rng(10)
+    xy0, xy1, is_road, c1, down = road_scene(rng, 0.0, n_road=12, n_above=0)
+    R, t = known_motion(xy0, xy1, is_road, c1)
+    X = np.column_stack([rng.uniform(-0.8, 0.8, 12), HEIGHT - rng.uniform(0.2, 0.5, 12), rng.uniform(4, 5, 12)])
+    X1 = (X - 0.05 * c1) @ se3.rotvec_to_R([0.0, np.radians(2.0), 0.0])
+    car, car1 = (P[:, :2] / P[:, 2:] for P in (X, X1))
+    assert road_scale(xy0, xy1, R, t, down, HEIGHT).factor == pytest.approx(1.0, rel=0.03)
+    assert road_scale(car, car1, R, t, down, HEIGHT).factor < 0.2
+    assert road_scale(np.vstack([xy0, car]), np.vstack([xy1, car1]), R, t, down, HEIGHT) is None
+
+
 def test_road_scale_needs_enough_tracks_in_front():
     rng = np.random.default_rng(6)
     xy0, xy1, is_road, c1, down = road_scene(rng, n_road=5, n_above=0)
