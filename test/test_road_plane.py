@@ -250,9 +250,9 @@ def test_road_scale_drops_a_car_ahead_before_it_weighs_the_near_road(monkeypatch
 
 def test_road_scale_observes_nothing_when_the_tracks_split_in_two_groups():
     """As many tracks on a car ahead (at 95 % of the rig's speed: ratios near 0.05) as on the
-    road: the plain median lies between the groups, about a factor e^1.5 from each, so no track is
-    near it. No factor then (the road is not told apart from the car), and no error: the
-    general arbiter's scale step runs on every frame of a real drive."""
+    road: the plain median lies between the groups, about a factor e^1.5 from each, so no
+    track is near it. No factor then (the road is not told apart from the car), and no error:
+    the general arbiter's scale step runs on every frame of a real drive."""
     rng = np.random.default_rng(10)
     xy0, xy1, is_road, c1, down = road_scene(rng, 0.0, n_road=12, n_above=0)
     R, t = known_motion(xy0, xy1, is_road, c1)
