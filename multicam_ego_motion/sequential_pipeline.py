@@ -130,15 +130,14 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             result.cameras[name].append(cams[name])
         first = min(frame_stamps.values())
         fused = fusion.process(common, cams, wheel_twist=wheel.at(first), wheel_stamp_ns=wheel.stamp_at(first))
-        road_up = fusion.road_normal(common)   # (as the quarters get it: before the fused pose)
-        if road_up is not None:
-            for qs in estimators.values():
-                for q in qs:
+        # (as the quarters get them: before the fused pose; the map scale latched, in time)
+        road_up = fusion.road_normal(common)
+        command = fusion.map_scale_command
+        for qs in estimators.values():
+            for q in qs:
+                if road_up is not None:
                     q.add_road_normal(common, road_up)
-        command = fusion.map_scale_command     # (as the quarters get it: latched, in time)
-        if command is not None:
-            for qs in estimators.values():
-                for q in qs:
+                if command is not None:
                     q.rescale_command(command)
         partner_gray = {}
         for stamp in sorted(set(frame_stamps.values())):
