@@ -11,11 +11,12 @@ from multicam_ego_motion.scenarios.generator import generate
 from replay_run import replay
 
 RATE = 8
-# Textured until ~6.7 s, then the bare stretch (left camera). With the arbiters' few ms the
-# two workers start balanced, so the imbalance builds from the bare wall on and the 10-frame
-# hysteresis ends ~3.5-5 s in: 8 s leave room (6 s did while the general arbiter's 7-13 ms
-# made worker 0 start ~10 % heavier).
-START_S, DURATION_S = 4.0, 8.0
+# Textured until ~6.7 s, then the bare stretch (left camera) to 14.7 s. With the arbiters' few
+# ms the two workers start nearly balanced, so the imbalance builds from the bare wall on and
+# the 10-frame hysteresis ends ~3.5-5 s in. The best move gains 11-25 %, against a 10 %
+# threshold, measured on a loaded machine frame by frame: one CI run of 8 s never had 8 of 10
+# frames over it, so the run goes to 14 s.
+START_S, DURATION_S = 4.0, 10.0
 FRAMES = int(DURATION_S * RATE)
 STAGES = ('acquire_ms', 'extract_ms', 'track_ms', 'pose_ms', 'structure_ms')
 
@@ -55,7 +56,10 @@ def test_coordinator_moves_nodes_when_the_left_camera_goes_bare(run):
     rebalances = [l for l in out if l.startswith('coordinator: rebalance at frame')]
     moves = [l for l in out if l.startswith('coordinator: moved ')]
     assert rebalances, run.stdout
-    assert 1 <= len(moves) <= 4 and len(rebalances) <= 2, run.stdout     # no thrashing
+    # no thrashing: with two workers a node that moves twice went back (each rebalance waits
+    # 2 x 10 frames after the one before, so 80 frames allow 4)
+    moved = [m.split('moved ')[1].split(':')[0] for m in moves]
+    assert 1 <= len(moves) <= 4 and len(rebalances) <= 3 and len(set(moved)) == len(moved), run.stdout
     # start: whole cameras, left with right; nodes move to that worker once it got cheaper
     # (a move the other way may come first: the textured start measured the workers 46-50 vs
     # 57-70 ms once on this VM, a legitimate rebalance before the wall)
