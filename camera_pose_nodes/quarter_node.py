@@ -270,8 +270,11 @@ class QuarterNode(Node):
 
     def on_road_normal(self, msg: Vector3Stamped):
         stamp_ns = stamp_to_ns(msg.header.stamp)
+        # Checked here, normalised once by the estimator (add_road_normal), as the sequential
+        # pipeline hands it over: normalised twice, its last bits differed from the pipeline's.
+        up = (msg.vector.x, msg.vector.y, msg.vector.z)
         try:
-            up = road_normal_of((msg.vector.x, msg.vector.y, msg.vector.z), self.source)
+            road_normal_of(up, self.source)
         except UserError as e:
             if self.road_normal_error != str(e):
                 self.road_normal_error = str(e)
