@@ -79,7 +79,8 @@ class GeneralArbiterNode(Node):
         self.p = p
         self.fusion = GeneralFusion(self.rig, fusion_params)
         self.sync = StampSynchronizer(self.rig.names, p['sync_timeout_s'],
-                                      window_ns=int(round(p['sync_window_s'] * 1e9)))
+                                      window_ns=int(round(p['sync_window_s'] * 1e9)),
+                                      takes=self.schedule_takes)
         # Free-running cameras on a rig configured as synchronised: every image would be a
         # frame of its own (fused alone, after the sync timeout).
         self.window_learner = (WindowLearner() if p['learn_sync_window'] and self.sync.window_ns == 0
@@ -199,7 +200,7 @@ class GeneralArbiterNode(Node):
         est = msg_to_estimate(msg, source=name)
         if self.window_learner is not None:
             self.learn_window(name, est.stamp_ns)
-        if not self.issued.takes(est.stamp_ns):
+        if not self.schedule_takes(name, est.stamp_ns):
             # A frame the schedule skips, from a camera whose quarters took it before the
             # schedule reached them: the others skipped it, and fusing it would give /odom
             # from part of the rig. (Its quarters do not wait for its fused pose: theirs
@@ -208,6 +209,16 @@ class GeneralArbiterNode(Node):
             self.off_schedule += 1
             return
         self.release(self.sync.add(name, est.stamp_ns, est, time.monotonic()))
+
+    def schedule_takes(self, camera, stamp_ns) -> bool:
+        """Whether the quarters of this camera take its frame at this stamp (each counts its
+        camera's own frames: ScheduleBook)."""
+        return self.issued.takes(stamp_ns, self.sync.period_ns.get(camera))
+
+    def frame_period_ns(self):
+        """The cameras' frame period: the shortest of their own (free-running cameras'
+        estimates are fused at their own stamps, several per frame period)."""
+        return min(self.sync.period_ns.values(), default=None)
 
     def learn_window(self, name, stamp_ns):
         spread = self.window_learner.add(name, stamp_ns)
@@ -271,7 +282,8 @@ class GeneralArbiterNode(Node):
         so the quarters have it when they pick their next frame."""
         was_enabled = self.governor.enabled
         schedule = self.governor.update(stamp_ns, self.get_clock().now().nanoseconds,
-                                        max(self.sync.last_stamp.values(), default=stamp_ns))
+                                        max(self.sync.last_stamp.values(), default=stamp_ns),
+                                        self.frame_period_ns())
         if was_enabled and not self.governor.enabled:
             self.get_logger().warn(
                 f'frame stamps and this node\'s clock differ by more than '
@@ -316,6 +328,7 @@ class GeneralArbiterNode(Node):
         /ego_motion/path restarts after a restore (its history is not carried)."""
         return {'fusion': self.fusion, 'wheel': self.wheel,
                 'last_released_ns': self.sync.last_released_ns, 'sync_window_ns': self.sync.window_ns,
+                'camera_periods_ns': dict(self.sync.period_ns),
                 'window_learner': self.window_learner,
                 'governor': self.governor.get_state(), 'issued': self.issued.get_state()}
 
@@ -324,6 +337,7 @@ class GeneralArbiterNode(Node):
         self.wheel = s['wheel']
         self.sync.last_released_ns = s['last_released_ns']
         self.sync.window_ns = s.get('sync_window_ns', self.sync.window_ns)
+        self.sync.period_ns.update(s.get('camera_periods_ns', {}))
         self.window_learner = s.get('window_learner', self.window_learner)
         self.governor.set_state(s['governor'])
         self.issued.set_state(s.get('issued'))

@@ -15,6 +15,9 @@ stamps only grow: with two frames in flight, a 15 Hz camera's next frame can com
 frames and no other. Until a source has two stamps its period is unknown: it is waited for,
 and a first miss does not mark it absent (it may be a slower camera, not a dead one).
 
+Frames a frame schedule skips (the graph is behind its cameras) do not come: with `takes(source,
+stamp_ns)` given, a source is due at its next frame the schedule takes, not at the next one.
+
 Groups are released in stamp order and a stamp not after the last release is dropped. A
 group's `missing` names the sources that were due in it and did not report; not one whose next
 frame came after the group where its period put it (a free-running camera due within the
@@ -27,6 +30,7 @@ from typing import Dict, List, Optional
 # next expected stamp: frame-to-frame jitter of a free-running camera stays well below it.
 DUE_JITTER_SHARE = 0.125
 RECENT_STAMPS = 8
+MAX_SKIPPED = 64     # frames in a row a schedule may skip (its stride is at most this)
 
 
 @dataclass
@@ -60,8 +64,9 @@ class _Open:
 
 
 class StampSynchronizer:
-    def __init__(self, sources, timeout_s: float, window_ns: int = 0):
+    def __init__(self, sources, timeout_s: float, window_ns: int = 0, takes=None):
         self.sources = list(sources)
+        self.takes = takes                         # (source, stamp_ns) -> the schedule takes it
         self.timeout_s = float(timeout_s)
         self.window_ns = int(window_ns)
         if self.window_ns < 0:
@@ -130,7 +135,17 @@ class StampSynchronizer:
         prev = self._before(source, g)
         if period is None or prev is None:
             return True
-        return prev + period - DUE_JITTER_SHARE * period <= g.lo + self.window_ns
+        return self._next_due(source, prev, period) - DUE_JITTER_SHARE * period <= g.lo + self.window_ns
+
+    def _next_due(self, source, prev, period) -> int:
+        """The stamp of the source's next frame after `prev` that the schedule takes."""
+        nxt = prev + period
+        if self.takes is not None:
+            for _ in range(MAX_SKIPPED):
+                if self.takes(source, nxt):
+                    break
+                nxt += period
+        return nxt
 
     def _before(self, source: str, g: _Open) -> Optional[int]:
         """The source's last recent stamp before the group."""
@@ -149,7 +164,7 @@ class StampSynchronizer:
         nxt = min((t for t in self.recent.get(source, ()) if t > g.hi + self.window_ns), default=None)
         if period is None or prev is None or nxt is None:
             return False
-        return nxt <= prev + period + DUE_JITTER_SHARE * period
+        return nxt <= self._next_due(source, prev, period) + DUE_JITTER_SHARE * period
 
     def _waits_for(self, source: str, g: _Open) -> bool:
         return source not in self.absent and self.due(source, g) and not self.past(source, g)

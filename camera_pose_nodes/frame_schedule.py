@@ -26,6 +26,10 @@ from typing import List, Optional
 
 LEAD_FRAMES = 2      # frames of the old schedule before a new one applies
 MAX_DENOMINATOR = 8  # kept fractions are keep / stride with stride up to this (or max_stride)
+# A camera whose period is this share or more off the schedule's runs at another rate than the
+# rig's fastest (30 / 20 Hz: 0.5); frame-to-frame jitter stays far below it.
+OWN_RATE_SHARE = 0.2
+MAX_LAGS = 256       # lags the governor keeps (free-running cameras: several per frame gap)
 
 
 @dataclass(frozen=True)
@@ -38,10 +42,12 @@ class FrameSchedule:
     stride: int
     keep: int = 1
 
-    def takes(self, stamp_ns: int) -> bool:
+    def takes(self, stamp_ns: int, period_ns: Optional[int] = None) -> bool:
+        """`period_ns`: the camera's own frame period where it is not the rig's (a 15 Hz
+        camera in a 30 Hz rig counts its own frames; by the rig's it would keep all or none)."""
         if self.keep >= self.stride or stamp_ns <= self.from_ns:
             return True
-        k = round((stamp_ns - self.from_ns) / self.period_ns)
+        k = round((stamp_ns - self.from_ns) / (period_ns or self.period_ns))
         return (k * self.keep) % self.stride < self.keep
 
     @property
@@ -70,28 +76,54 @@ def kept_fractions(max_stride: int) -> List[Fraction]:
                    if Fraction(k, d) >= Fraction(1, max_stride)})
 
 
+def own_period(schedule_period_ns: int, camera_period_ns: Optional[int]) -> Optional[int]:
+    """The period a camera counts its frames by: its own where its rate is not the rig's
+    (more than OWN_RATE_SHARE apart), else the schedule's, so that the cameras of a
+    synchronised rig, whose shortest steps differ by their jitter, count the same frames."""
+    if camera_period_ns is None or abs(camera_period_ns - schedule_period_ns) <= OWN_RATE_SHARE * schedule_period_ns:
+        return None
+    return int(camera_period_ns)
+
+
 class ScheduleBook:
-    """A quarter's schedules: each applies from its from_ns until the next one's."""
+    """One camera's schedules (a quarter's), each applying from its from_ns until the next
+    one's; or the general arbiter's, for every camera, each with its frame period."""
 
     def __init__(self):
         self.schedules: List[FrameSchedule] = []
+        self.period_ns: Optional[int] = None    # the camera's: the shortest step between its stamps
+        self.last_ns: Optional[int] = None
 
     def add(self, s: FrameSchedule):
         if s in self.schedules:
             return
         self.schedules = sorted(self.schedules + [s], key=lambda x: x.from_ns)[-4:]
 
-    def takes(self, stamp_ns: int) -> bool:
+    def saw(self, stamp_ns: int):
+        """A frame of the camera came (taken or not): its period."""
+        if self.last_ns is not None and stamp_ns > self.last_ns:
+            step = int(stamp_ns - self.last_ns)
+            self.period_ns = step if self.period_ns is None else min(self.period_ns, step)
+        if self.last_ns is None or stamp_ns > self.last_ns:
+            self.last_ns = int(stamp_ns)
+
+    def takes(self, stamp_ns: int, camera_period_ns: Optional[int] = None) -> bool:
         current = None
         for s in self.schedules:
             if s.from_ns < stamp_ns:
                 current = s
-        return current is None or current.takes(stamp_ns)
+        if current is None:
+            return True
+        return current.takes(stamp_ns, own_period(current.period_ns, camera_period_ns or self.period_ns))
 
     def get_state(self):
-        return [s.to_list() for s in self.schedules]
+        return {'schedules': [s.to_list() for s in self.schedules], 'period_ns': self.period_ns,
+                'last_ns': self.last_ns}
 
     def set_state(self, state):
+        if isinstance(state, dict):
+            self.period_ns, self.last_ns = state.get('period_ns'), state.get('last_ns')
+            state = state.get('schedules')
         self.schedules = [FrameSchedule.from_list(v) for v in state or []]
 
 
@@ -122,9 +154,11 @@ class FrameGovernor:
         self.keep = 1
         self.period_ns: Optional[int] = None
         self.last_stamp_ns: Optional[int] = None
-        # since the last change, oldest first; the last 2 * hold_frames are all the rules read
-        # (the general arbiter snapshots this state every frame: it must not grow with the run)
+        # since the last change, oldest first, with their frames' stamps; the last 2 *
+        # hold_frames frame gaps are all the rules read (the general arbiter snapshots this
+        # state every frame: it must not grow with the run)
         self.lags: List[float] = []
+        self.lag_stamps: List[int] = []
         self.clock_mismatch = False
 
     @property
@@ -146,13 +180,17 @@ class FrameGovernor:
         fits = [x for x in kept_fractions(self.max_stride) if x <= f]
         return fits[-1] if fits else Fraction(1, self.max_stride)
 
-    def update(self, stamp_ns: int, now_ns: int, newest_ns: Optional[int] = None) -> Optional[FrameSchedule]:
+    def update(self, stamp_ns: int, now_ns: int, newest_ns: Optional[int] = None,
+               frame_period_ns: Optional[int] = None) -> Optional[FrameSchedule]:
         """After fusing frame `stamp_ns` at clock `now_ns`: a new schedule, or None.
         `newest_ns`: the newest stamp of any estimate the arbiter has received (quarters
-        may be ahead of the fused frame)."""
-        # The frame period: the shortest step between fused frames (the graph starts on
-        # every frame; a schedule's frames are whole periods apart whatever it is).
-        if self.last_stamp_ns is not None and stamp_ns > self.last_stamp_ns:
+        may be ahead of the fused frame). `frame_period_ns`: the cameras' frame period (the
+        shortest of their own); without it, the shortest step between fused frames, which is
+        the same for a synchronised rig but a fraction of it for free-running cameras, whose
+        estimates are fused at their own stamps."""
+        if frame_period_ns is not None:
+            self.period_ns = int(frame_period_ns)
+        elif self.last_stamp_ns is not None and stamp_ns > self.last_stamp_ns:
             step = stamp_ns - self.last_stamp_ns
             if self.period_ns is None or step < self.period_ns:
                 self.period_ns = int(step)
@@ -163,27 +201,43 @@ class FrameGovernor:
         if abs(lag) > self.clock_sanity_s:
             self.clock_mismatch = True
             return None
-        self.lags = self.lags[-(2 * self.hold_frames - 1):] + [lag]
-        if self.period_ns is None or len(self.lags) < self.hold_frames:
+        if self.period_ns is None:
             return None
-        recent = self.lags[-self.hold_frames:]
         P = self.period_ns * 1e-9
-        gap = P / float(self.fraction)             # the mean gap between frames processed
+        gap = P / float(self.fraction)             # the mean gap between a camera's frames processed
+        # The rules read lags over stamp time: hold_frames of a camera's processed frames (a
+        # synchronised rig's fused frames; free-running cameras fuse several in that time).
+        self.lags.append(lag)
+        self.lag_stamps.append(int(stamp_ns))
+        keep_from = len(self.lags) - 2 * self.hold_frames
+        while keep_from > 0 and (self.lag_stamps[-1] - self.lag_stamps[keep_from]) * 1e-9 < (2 * self.hold_frames - 1) * gap:
+            keep_from -= 1
+        keep_from = max(keep_from, len(self.lags) - MAX_LAGS)
+        if keep_from > 0:
+            del self.lags[:keep_from], self.lag_stamps[:keep_from]
+        span_s = (self.lag_stamps[-1] - self.lag_stamps[0]) * 1e-9
+        if len(self.lags) < self.hold_frames or span_s < (self.hold_frames - 1) * gap - 0.5 * P:
+            return None
+        first = len(self.lags) - self.hold_frames
+        while first > 0 and (self.lag_stamps[-1] - self.lag_stamps[first]) * 1e-9 < (self.hold_frames - 1) * gap - 0.5 * P:
+            first -= 1
+        recent = self.lags[first:]
+        recent_span_s = (self.lag_stamps[-1] - self.lag_stamps[first]) * 1e-9
         growing = recent[-1] - recent[0] > 0.5 * P
         fraction = self.fraction
         steps = kept_fractions(self.max_stride)
         if growing:
             if lag > self.max_lag_s:
-                # a frame costs the graph its gap plus what the lag grows by per frame: go
+                # a frame costs the graph its gap plus what the lag grows by in that gap: go
                 # straight to a fraction that covers it
-                cost = gap + (recent[-1] - recent[0]) / (len(recent) - 1)
+                cost = gap * (1.0 + (recent[-1] - recent[0]) / max(recent_span_s, 1e-9))
                 lower = [x for x in steps if x < self.fraction]
                 fraction = min(self._at_most(P / (cost * (1.0 + self.margin))),
                                lower[-1] if lower else self.fraction)
         elif lag > 2 * self.max_lag_s:
             lower = [x for x in steps if x < self.fraction]    # keeping up: drain the backlog
             fraction = lower[-1] if lower else self.fraction
-        elif len(self.lags) >= 2 * self.hold_frames:
+        elif len(self.lags) >= 2 * self.hold_frames and span_s >= (2 * self.hold_frames - 1) * gap - 0.5 * P:
             steady = sorted(recent)[len(recent) // 2]
             # (a lag of zero or less: a clock that reads the frames' stamps, e.g. /clock from
             # the player: every frame)
@@ -201,7 +255,7 @@ class FrameGovernor:
         ahead = max(0, int(newest_ns) - int(stamp_ns)) if newest_ns is not None else 0
         start = int(stamp_ns) + (LEAD_FRAMES + -(-ahead // step)) * step
         self.stride, self.keep = fraction.denominator, fraction.numerator
-        self.lags = []
+        self.lags, self.lag_stamps = [], []
         return FrameSchedule(start, self.period_ns, self.stride, self.keep)
 
     def get_state(self) -> dict:
@@ -211,4 +265,6 @@ class FrameGovernor:
         s = dict(s)
         s.setdefault('keep', 1)
         s.setdefault('margin', 0.1)
+        if len(s.get('lag_stamps', ())) != len(s.get('lags', ())):
+            s['lags'], s['lag_stamps'] = [], []
         vars(self).update(s)

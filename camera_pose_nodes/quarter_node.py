@@ -240,6 +240,7 @@ class QuarterNode(Node):
                 self.send_estimate(estimate_to_msg(sent))
             self.report_stale(msg, stamp_ns)
             return
+        self.schedule.saw(stamp_ns)    # (its camera's period, for the schedule)
         if not self.schedule.takes(stamp_ns):
             self.skipped += 1          # the graph is behind: a frame every quarter skips
             return

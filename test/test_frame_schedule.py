@@ -144,3 +144,50 @@ def test_a_schedule_starts_after_every_frame_a_quarter_may_have_taken():
         assert (s.from_ns - stamp) % (old_stride * P) == 0
         assert s.from_ns - newest <= (2 + 1) * old_stride * P
         old_stride = s.stride
+
+
+def test_a_camera_at_another_rate_counts_its_own_frames():
+    """A 15 Hz camera in a 30 Hz rig under 'every second frame': by the rig's period all its
+    stamps fall on even frames (kept all, or none); by its own it keeps every second one. A
+    camera at the rig's rate whose shortest step is a few us short (jitter) counts by the
+    schedule's period, like the other cameras of a synchronised rig."""
+    s = FrameSchedule(T0, P, 2)
+    slow, jittery = ScheduleBook(), ScheduleBook()
+    slow.add(s)
+    jittery.add(s)
+    for k in range(20):
+        slow.saw(T0 + 2 * k * P)
+        jittery.saw(T0 + k * P + (k % 2) * 3000)
+    assert [slow.takes(T0 + 2 * k * P) for k in range(1, 7)] == [False, True] * 3
+    assert all(FrameSchedule(T0, P, 2).takes(T0 + 2 * k * P) for k in range(1, 7))     # the rig's count
+    assert [jittery.takes(T0 + k * P) for k in range(1, 7)] == [s.takes(T0 + k * P) for k in range(1, 7)]
+    moved = ScheduleBook()
+    moved.set_state(slow.get_state())
+    assert moved.period_ns == 2 * P and moved.takes(T0 + 4 * P) and not moved.takes(T0 + 6 * P)
+
+
+def test_the_governor_spreads_the_skipping_over_free_running_cameras():
+    """Four cameras at 30 Hz with phases 0, 0.3, 0.55 and 0.8 of the period, fused each at
+    its own stamp, through a graph that needs half a period per image (two periods a frame of
+    the rig): told the cameras' period, the governor keeps the same share of every camera's
+    frames, a third (0.34) where half would do: the steady lag it reads as a frame's cost
+    includes the wait behind the other cameras' images. (From the steps between fused stamps
+    it read a period a fifth of the frame's, and kept some cameras' frames and none of others'.)"""
+    phases = [0.0, 0.3, 0.55, 0.8]
+    gov, book = FrameGovernor(max_lag_s=0.1), ScheduleBook()
+    clock, kept = T0, {c: [] for c in range(4)}
+    for k in range(300):
+        for c, ph in enumerate(phases):
+            stamp = T0 + k * P + int(ph * P)
+            take = book.takes(stamp, P)
+            kept[c].append(take)
+            if not take:
+                continue
+            clock = max(clock, stamp) + P // 2
+            s = gov.update(stamp, clock, None, P)
+            if s is not None:
+                book.add(s)
+    shares = [sum(v[-120:]) / 120 for v in kept.values()]
+    assert max(shares) - min(shares) <= 0.05 and 0.3 <= min(shares) and max(shares) <= 0.5, shares
+    assert gov.camera_rate_hz() == pytest.approx(30.0, rel=1e-3)
+    assert (clock - (T0 + 299 * P)) / 1e9 <= 0.3          # kept up: the lag stayed bounded

@@ -87,8 +87,8 @@ def test_coordinator_moves_nodes_when_the_left_camera_goes_bare(run):
     costs = camera_costs(run)
     textured = ratio_left(costs, START_S + 0.5, START_S + 1.5)
     # (about half by the end: 0.48-0.50 of the textured ratio measured; CPU times of a loaded
-    # machine move it by a few percent, so the bound is 0.6, far below the textured 1.0)
-    assert ratio_left(costs, START_S + DURATION_S - 1.0, START_S + DURATION_S) < 0.6 * textured
+    # machine move it, 0.61 once on CI, so the bound is 0.7, far below the textured 1.0)
+    assert ratio_left(costs, START_S + DURATION_S - 1.0, START_S + DURATION_S) < 0.7 * textured
     # and each rebalance was for a better balance on the costs it measured. (The imbalance
     # measured after a move is CPU time on a shared machine: CI runs read it 0.19 after vs 0.18
     # before, and 0.14 vs 0.11 over 0.25-1 s after, while the moved node's first frames on its

@@ -162,3 +162,26 @@ def test_a_dropped_frame_of_a_synchronised_camera_is_named_missing():
     out += s.add('b', 4 * P, 'B', now=0.4)
     out += s.add('a', 4 * P, 'A', now=0.4)
     assert [(g.stamp_ns, g.missing) for g in out] == [(0, []), (P, []), (2 * P, []), (3 * P, ['b']), (4 * P, [])]
+
+
+def test_a_frame_the_schedule_skips_is_not_waited_for():
+    """Free-running cameras behind a frame schedule: a camera whose next frame the schedule
+    skips is due at the one after, so the other camera's estimates before that are released
+    at once, not after the timeout."""
+    P = 100
+    skipped = {('b', 3 * P + 40)}
+    s = StampSynchronizer(['a', 'b'], timeout_s=1.0, takes=lambda src, t: (src, t) not in skipped)
+    unscheduled = StampSynchronizer(['a', 'b'], timeout_s=1.0)
+    for sync in (s, unscheduled):
+        for k in range(3):                       # a at 0, 100, 200; b 40 ms after each
+            sync.add('a', k * P, 'A', now=0.01 * k)
+            sync.add('b', k * P + 40, 'B', now=0.01 * k)
+        assert [x.stamp_ns for x in sync.add('a', 3 * P, 'A', now=0.1)] == [3 * P]
+    # b's 340 is skipped: its next frame is 440, after a's 400
+    g = s.add('a', 4 * P, 'A', now=0.11)
+    assert [x.stamp_ns for x in g] == [4 * P] and not g[0].timed_out and g[0].missing == []
+    assert [x.stamp_ns for x in s.add('b', 4 * P + 40, 'B', now=0.12)] == [4 * P + 40]
+    # without the schedule a's 400 waits for b's 340 until the timeout
+    assert unscheduled.add('a', 4 * P, 'A', now=0.11) == []
+    g = unscheduled.poll(now=1.2)
+    assert [x.stamp_ns for x in g] == [4 * P] and g[0].timed_out and g[0].missing == ['b']
