@@ -133,6 +133,7 @@ PARAMETERS = {
     'road_landmarks': (True, "on a road (the rig's floor_level false, no stereo pair), every frame, tracks that moved since the previous frame as the floor does (a plane homography whose normal and height agree with the rig's floor: road_plane) are placed on the floor from the previous fused pose: metric steps at car speed without a wheel or stereo (needs ground_plane)", None, None),
     'road_tilt_std_deg': (1.0, "on a road (road_landmarks), the body's tilt to the road (1 sigma, deg) in the depth of every point put on it (ground_plane.floor_points: relative std tilt / sin(depression)); a car pitches 1-2 deg to its road when it brakes and a camera's mount to the road is known to about a degree, so the near road carries the scale and the far road (17 % at 15 m under a camera 1.65 m up) little: with ground_plane's indoor 0.2 deg the far points held the map 5-10 % long against the general arbiter's road scale (docs/estimator.md)", 0.01, 10.0),
     'road_normal': (True, "on a road (road_landmarks), its points are put on the road the general arbiter's road scale stands on (its normal from the direction of travel, road_pitch; add_road_normal), not on the plane square to the body's z axis: a camera is a degree or so pitched to its road (KITTI's: about 1 deg down), which put the road's far points 5-20 % too far, every step read that much long and the road scale cut the maps back 2 % every few frames (docs/estimator.md)", None, None),
+    'road_first_step': (True, "on a road (road_landmarks), the first frame pair since the floor was seeded: the EKF's update is linearized at the step the quarter's tracks measure (rotation and direction from the essential matrix, when their median parallax reaches two_view_parallax_deg; the length from the lane's tracks on the road: road_plane.road_step), not at rest: a car moves a metre between those frames, and kitti_seq1's lower quarters read its first 1.2 m step as 1.3 to 2.2 m (docs/estimator.md)", None, None),
     'road_min_step': (0.1, 'shortest camera step (m) between two frames at which road_landmarks looks for the floor (shorter: points above it move alike)', 0.001, 10.0),
     'ground_tolerance': (0.3, 'a floor landmark\'s depth is never farther than this fraction from its ray\'s floor intersection', 0.001, 1.0),
     'two_view_init': (True, 'without landmarks, floor or any motion of the fused poses, initialise from two-view geometry on the tracks (essential matrix): rotation and direction of travel, the length from two_view_nominal_speed (see two_view)', None, None),
@@ -374,6 +375,8 @@ class QuarterEstimator:
         stamp_before = self.ekf.stamp_ns
         self.ekf.predict(stamp_ns)
         if self.uses_road:
+            if self.params.road_first_step and len(self.fused_poses) == 1:
+                self._relinearize_first_road_step(stamp_ns)
             self._road_landmarks(stamp_ns)
         has, X = self.landmarks.lookup(self.tracker.ids)
         n_inliers = 0
@@ -850,6 +853,35 @@ class QuarterEstimator:
                                       np.broadcast_to(c_o, (N, 3)), np.broadcast_to(n, (N, 3)),
                                       np.full(N, d), self.landmarks.sigma_n, self.floor_tilt_rad)
         self.landmarks.place(ids[valid], X[valid], C[valid])
+
+    def _relinearize_first_road_step(self, stamp_ns):
+        """road_first_step: the first frame pair since the floor was seeded (one fused pose)
+        has no motion to predict from, so the EKF would linearize its update at rest while a
+        car moved a metre; it is linearized at the step this quarter's tracks measure
+        (road_plane.road_step) instead, as the stereo rigs' is at a PnP pose."""
+        tr = self.tracker
+        s0 = next(iter(self.fused_poses))
+        rows = np.flatnonzero((tr.hist_n >= 2) & (tr.last_stamps() == stamp_ns))
+        prev = tr.hist_n[rows] - 2
+        ok = tr.hist_t[rows, prev] == s0
+        rows, prev = rows[ok], prev[ok]
+        if len(rows) < self.params.two_view_min_points:
+            return
+        xy0 = self.intrinsics.undistort_points(tr.hist_uv[rows, prev].astype(float))
+        xy1 = self.intrinsics.undistort_points(tr.pts[rows].astype(float))
+        T0 = self.fused_poses[s0]
+        R_oc, c_o = self._camera_pose(T0)
+        n, d = floor_plane(T0, self.floor_z, self.road_up)
+        step = road_plane.road_step(xy0, xy1, R_oc.T @ -n, float(n @ c_o - d), self.T_base_cam[:3, :3],
+                                    2.5 * self.landmarks.sigma_n, self.params.two_view_min_points,
+                                    self.params.two_view_parallax_deg)
+        if step is None:
+            return
+        T_c0c1 = np.eye(4)
+        T_c0c1[:3, :3] = step.R.T
+        T_c0c1[:3, 3] = step.centre_m
+        T1 = T0 @ self.T_base_cam @ T_c0c1 @ np.linalg.inv(self.T_base_cam)
+        self.ekf.relinearize(T1, (stamp_ns - s0) * 1e-9)
 
     def _road_landmarks(self, stamp_ns) -> int:
         """Tracks seen in the previous frame and in this one that move as the floor does

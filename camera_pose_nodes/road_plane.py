@@ -21,6 +21,8 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from camera_pose_nodes.two_view import two_view
+
 MIN_POINTS = 8                    # a homography from fewer is not worth trusting
 NORMAL_AGREEMENT_COS = np.cos(np.radians(12.0))   # decomposed normal against the rig's floor
 ROAD_MIN_DEPRESSION_RAD = np.radians(3.0)   # tracks nearer the horizon meet the road too far
@@ -149,6 +151,32 @@ def road_scale(xy0: np.ndarray, xy1: np.ndarray, R: np.ndarray, t: np.ndarray, d
     if not np.isfinite(k):
         return None
     return RoadScale(k, 1.25 * mad / math.sqrt(len(log_k)), len(log_k))
+
+
+@dataclass
+class RoadStep:
+    R: np.ndarray              # (3, 3) camera 0 -> 1 rotation: X1 = R X0 + t
+    centre_m: np.ndarray       # (3,) camera 1's centre in camera 0's frame (m)
+    scale: RoadScale           # the length's factor and the lane tracks behind it
+
+
+def road_step(xy0: np.ndarray, xy1: np.ndarray, down_c: np.ndarray, height_m: float,
+              R_base_cam: np.ndarray, threshold: float, min_points: int,
+              min_parallax_deg: float) -> Optional[RoadStep]:
+    """A camera's metric motion between two frames from its tracks alone: the rotation and
+    the direction of travel from the essential matrix of all of them (two_view, which needs
+    min_points inliers and min_parallax_deg of median parallax), the length from those in
+    the lane ahead (road_region) by road_scale. Why: with no motion known (a road rig's first
+    frame pair) this is where the quarter's update is linearized (quarter_estimator,
+    road_first_step). None when either part is not measured."""
+    tv = two_view(xy0, xy1, threshold, min_points, min_parallax_deg)
+    if tv is None:
+        return None
+    lane = tv.inliers & road_region(xy0, down_c, R_base_cam, height_m)
+    rs = road_scale(xy0[lane], xy1[lane], tv.R, tv.t, down_c, height_m)
+    if rs is None:
+        return None
+    return RoadStep(tv.R, -tv.R.T @ tv.t * rs.factor, rs)
 
 
 def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:

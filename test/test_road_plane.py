@@ -10,7 +10,7 @@ import pytest
 from arbiter_node.general_fusion import default_params
 from arbiter_node.scale_state import ScaleState
 from camera_pose_nodes.map_scale import scale_positions
-from camera_pose_nodes.road_plane import camera_step, fit_road, road_scale
+from camera_pose_nodes.road_plane import camera_step, fit_road, road_scale, road_step
 from multicam_ego_motion.geometry import se3
 from multicam_ego_motion.geometry.rig import CameraMount, Rig, optical_rotation
 
@@ -337,3 +337,24 @@ def test_features_sent_after_their_frame_pair_it_with_the_next():
     assert len(tracks.xa) == 3
     assert np.allclose(tracks.xa, xy[[1, 2, 3]]) and np.allclose(tracks.xb, xy[:3] + 0.01)
 
+
+
+def test_the_first_step_of_a_road_camera_from_its_tracks_alone():
+    """No motion known (a road rig's first frame pair, quarter_estimator road_first_step): the
+    rotation and direction from the essential matrix of all the tracks, the length from those
+    in the lane on the road, a third of them above it. Metric to a few percent; nothing when
+    the step is too short for its direction to show, or no track lies in the lane."""
+    rng = np.random.default_rng(11)
+    R_base_cam = optical_rotation(0.0)
+    xy0, xy1, is_road, c1, down = road_scene(rng, step=1.2, yaw_deg=2.0, n_road=40, n_above=20)
+    step = road_step(xy0, xy1, down, HEIGHT, R_base_cam, 2.5 / FOCAL, 12, 1.0)
+    assert step is not None
+    np.testing.assert_allclose(step.centre_m, c1, atol=0.03 * np.linalg.norm(c1))
+    R_true = se3.rotvec_to_R([0.0, np.radians(2.0), 0.0]).T
+    assert np.degrees(np.linalg.norm(se3.R_to_rotvec(step.R @ R_true.T))) < 0.25
+    assert step.scale.n_points >= 20
+    short = road_scene(np.random.default_rng(12), step=0.02)
+    assert road_step(short[0], short[1], down, HEIGHT, R_base_cam, 2.5 / FOCAL, 12, 1.0) is None
+    # the same tracks with the lane out of view (the camera believed 40 m up: no ray meets
+    # the road within the lane's 20 m)
+    assert road_step(xy0, xy1, down, 40.0, R_base_cam, 2.5 / FOCAL, 12, 1.0) is None
