@@ -26,6 +26,8 @@ jitter allowance that captured a few ms later: it was never going to be in this 
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
+from camera_pose_nodes.frame_schedule import learn_period
+
 # A source is not due in a group that ends more than this share of its period before its
 # next expected stamp: frame-to-frame jitter of a free-running camera stays well below it.
 DUE_JITTER_SHARE = 0.125
@@ -99,10 +101,9 @@ class StampSynchronizer:
 
     def _note_stamp(self, source, stamp_ns):
         last = self.last_stamp.get(source)
-        if last is not None and stamp_ns > last:
-            step = stamp_ns - last
-            if source not in self.period_ns or step < self.period_ns[source]:
-                self.period_ns[source] = int(step)
+        period = learn_period(self.period_ns.get(source), last, stamp_ns)
+        if period is not None:
+            self.period_ns[source] = period
         if last is None or stamp_ns > last:
             self.last_stamp[source] = int(stamp_ns)
             self.recent.setdefault(source, []).append(int(stamp_ns))

@@ -32,6 +32,15 @@ OWN_RATE_SHARE = 0.2
 MAX_LAGS = 256       # lags the governor keeps (free-running cameras: several per frame gap)
 
 
+def learn_period(period_ns: Optional[int], last_ns: Optional[int], stamp_ns: int) -> Optional[int]:
+    """A source's frame period after one more of its stamps: the shortest step between its
+    stamps so far (a skipped, dropped or late frame only lengthens a step)."""
+    if last_ns is None or stamp_ns <= last_ns:
+        return period_ns
+    step = int(stamp_ns - last_ns)
+    return step if period_ns is None else min(period_ns, step)
+
+
 @dataclass(frozen=True)
 class FrameSchedule:
     """From `from_ns` on (a frame every quarter processed), of the frames at from_ns + k *
@@ -101,9 +110,7 @@ class ScheduleBook:
 
     def saw(self, stamp_ns: int):
         """A frame of the camera came (taken or not): its period."""
-        if self.last_ns is not None and stamp_ns > self.last_ns:
-            step = int(stamp_ns - self.last_ns)
-            self.period_ns = step if self.period_ns is None else min(self.period_ns, step)
+        self.period_ns = learn_period(self.period_ns, self.last_ns, stamp_ns)
         if self.last_ns is None or stamp_ns > self.last_ns:
             self.last_ns = int(stamp_ns)
 
