@@ -854,21 +854,26 @@ class QuarterEstimator:
                                       np.full(N, d), self.landmarks.sigma_n, self.floor_tilt_rad)
         self.landmarks.place(ids[valid], X[valid], C[valid])
 
+    def _tracks_since(self, s0, stamp_ns):
+        """The tracks seen in this frame and, one sighting before, at frame s0: their rows in
+        the tracker and their points at s0 (normalised, undistorted)."""
+        tr = self.tracker
+        rows = np.flatnonzero((tr.hist_n >= 2) & (tr.last_stamps() == stamp_ns))
+        prev = tr.hist_n[rows] - 2
+        ok = tr.hist_t[rows, prev] == s0
+        rows, prev = rows[ok], prev[ok]
+        return rows, self.intrinsics.undistort_points(tr.hist_uv[rows, prev].astype(float))
+
     def _relinearize_first_road_step(self, stamp_ns):
         """road_first_step: the first frame pair since the floor was seeded (one fused pose)
         has no motion to predict from, so the EKF would linearize its update at rest while a
         car moved a metre; it is linearized at the step this quarter's tracks measure
         (road_plane.road_step) instead, as the stereo rigs' is at a PnP pose."""
-        tr = self.tracker
         s0 = next(iter(self.fused_poses))
-        rows = np.flatnonzero((tr.hist_n >= 2) & (tr.last_stamps() == stamp_ns))
-        prev = tr.hist_n[rows] - 2
-        ok = tr.hist_t[rows, prev] == s0
-        rows, prev = rows[ok], prev[ok]
+        rows, xy0 = self._tracks_since(s0, stamp_ns)
         if len(rows) < self.params.two_view_min_points:
             return
-        xy0 = self.intrinsics.undistort_points(tr.hist_uv[rows, prev].astype(float))
-        xy1 = self.intrinsics.undistort_points(tr.pts[rows].astype(float))
+        xy1 = self.intrinsics.undistort_points(self.tracker.pts[rows].astype(float))
         T0 = self.fused_poses[s0]
         R_oc, c_o = self._camera_pose(T0)
         n, d = floor_plane(T0, self.floor_z, self.road_up)
@@ -891,15 +896,11 @@ class QuarterEstimator:
         if len(self.own_stamps) < 2 or self.own_stamps[-2] not in self.fused_poses:
             return 0
         s0 = self.own_stamps[-2]
-        rows = np.flatnonzero((tr.hist_n >= 2) & (tr.last_stamps() == stamp_ns))
-        prev = tr.hist_n[rows] - 2
-        ok = tr.hist_t[rows, prev] == s0
-        rows, prev = rows[ok], prev[ok]
+        rows, xy0 = self._tracks_since(s0, stamp_ns)
         if len(rows) < road_plane.MIN_POINTS:
             return 0
         T0 = self.fused_poses[s0]
         R_oc, c_o = self._camera_pose(T0)
-        xy0 = self.intrinsics.undistort_points(tr.hist_uv[rows, prev].astype(float))
         n, d = floor_plane(T0, self.floor_z, self.road_up)
         N = len(rows)
         valid, X, _, C = floor_points(bearings_odom(np.broadcast_to(R_oc, (N, 3, 3)), xy0),
