@@ -187,6 +187,11 @@ class FrameGovernor:
         fits = [x for x in kept_fractions(self.max_stride) if x <= f]
         return fits[-1] if fits else Fraction(1, self.max_stride)
 
+    def _free_running(self) -> bool:
+        """Several estimates fused within one frame period: cameras at their own phases."""
+        st = self.lag_stamps
+        return any(0 < b - a < 0.5 * self.period_ns for a, b in zip(st, st[1:]))
+
     def update(self, stamp_ns: int, now_ns: int, newest_ns: Optional[int] = None,
                frame_period_ns: Optional[int] = None) -> Optional[FrameSchedule]:
         """After fusing frame `stamp_ns` at clock `now_ns`: a new schedule, or None.
@@ -249,7 +254,14 @@ class FrameGovernor:
             # (a lag of zero or less: a clock that reads the frames' stamps, e.g. /clock from
             # the player: every frame)
             cap = P / (steady * (1.0 + self.margin)) if steady > 0.0 else 1.0
-            fraction = min(max(self.fraction, self._at_most(cap)), Fraction(1))
+            up = self._at_most(cap)
+            if self._free_running():
+                # one estimate's lag is one camera's image and its wait behind the others',
+                # not the rig's frame: it cannot say how much more the graph can take, so the
+                # fraction goes up a step at a time and the growing rule finds the cost
+                higher = [x for x in steps if x > self.fraction]
+                up = min(up, higher[0]) if higher else up
+            fraction = min(max(self.fraction, up), Fraction(1))
         if fraction == self.fraction:
             return None
         # From a frame of the old schedule after the newest estimate received, not after the

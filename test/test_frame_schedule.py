@@ -170,13 +170,17 @@ def test_the_governor_spreads_the_skipping_over_free_running_cameras():
     """Four cameras at 30 Hz with phases 0, 0.3, 0.55 and 0.8 of the period, fused each at
     its own stamp, through a graph that needs half a period per image (two periods a frame of
     the rig): told the cameras' period, the governor keeps the same share of every camera's
-    frames, a third (0.34) where half would do: the steady lag it reads as a frame's cost
-    includes the wait behind the other cameras' images. (From the steps between fused stamps
-    it read a period a fifth of the frame's, and kept some cameras' frames and none of others'.)"""
+    frames, 0.38 where half would do, with the lag under a quarter of a second. An estimate's
+    steady lag is one image and its wait behind the others', not the rig's frame, so the
+    fraction climbs a step at a time and the growing rule finds the cost: taken as a frame's
+    cost that lag raised the fraction to 7/8 and the growing rule threw it to 1/5 (the lag's
+    median 0.25 s, 99th percentile 0.61). (From the steps between fused stamps the governor
+    read a period a fifth of the frame's, and kept some cameras' frames and none of others'.)"""
     phases = [0.0, 0.3, 0.55, 0.8]
     gov, book = FrameGovernor(max_lag_s=0.1), ScheduleBook()
     clock, kept = T0, {c: [] for c in range(4)}
-    for k in range(300):
+    lags = []
+    for k in range(1800):
         for c, ph in enumerate(phases):
             stamp = T0 + k * P + int(ph * P)
             take = book.takes(stamp, P)
@@ -184,10 +188,12 @@ def test_the_governor_spreads_the_skipping_over_free_running_cameras():
             if not take:
                 continue
             clock = max(clock, stamp) + P // 2
+            lags.append((clock - stamp) / 1e9)
             s = gov.update(stamp, clock, None, P)
             if s is not None:
                 book.add(s)
-    shares = [sum(v[-120:]) / 120 for v in kept.values()]
-    assert max(shares) - min(shares) <= 0.05 and 0.3 <= min(shares) and max(shares) <= 0.5, shares
+    shares = [sum(v[300:]) / len(v[300:]) for v in kept.values()]
+    assert max(shares) - min(shares) <= 0.05 and 0.35 <= min(shares) and max(shares) <= 0.5, shares
     assert gov.camera_rate_hz() == pytest.approx(30.0, rel=1e-3)
-    assert (clock - (T0 + 299 * P)) / 1e9 <= 0.3          # kept up: the lag stayed bounded
+    late = sorted(lags[len(lags) // 5:])
+    assert late[int(0.99 * len(late))] <= 0.25, late[int(0.99 * len(late))]   # kept up, calmly
