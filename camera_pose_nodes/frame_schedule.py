@@ -187,6 +187,13 @@ class FrameGovernor:
         fits = [x for x in kept_fractions(self.max_stride) if x <= f]
         return fits[-1] if fits else Fraction(1, self.max_stride)
 
+    def _step(self, up: bool) -> Fraction:
+        """The kept fraction one step above (or below) the current one; the current at the end."""
+        steps = kept_fractions(self.max_stride)
+        if up:
+            return next((x for x in steps if x > self.fraction), self.fraction)
+        return next((x for x in reversed(steps) if x < self.fraction), self.fraction)
+
     def _free_running(self) -> bool:
         """Several estimates fused within one frame period: cameras at their own phases."""
         st = self.lag_stamps
@@ -237,18 +244,14 @@ class FrameGovernor:
         recent_span_s = (self.lag_stamps[-1] - self.lag_stamps[first]) * 1e-9
         growing = recent[-1] - recent[0] > 0.5 * P
         fraction = self.fraction
-        steps = kept_fractions(self.max_stride)
         if growing:
             if lag > self.max_lag_s:
                 # a frame costs the graph its gap plus what the lag grows by in that gap: go
                 # straight to a fraction that covers it
                 cost = gap * (1.0 + (recent[-1] - recent[0]) / max(recent_span_s, 1e-9))
-                lower = [x for x in steps if x < self.fraction]
-                fraction = min(self._at_most(P / (cost * (1.0 + self.margin))),
-                               lower[-1] if lower else self.fraction)
+                fraction = min(self._at_most(P / (cost * (1.0 + self.margin))), self._step(up=False))
         elif lag > 2 * self.max_lag_s:
-            lower = [x for x in steps if x < self.fraction]    # keeping up: drain the backlog
-            fraction = lower[-1] if lower else self.fraction
+            fraction = self._step(up=False)          # keeping up: drain the backlog
         elif len(self.lags) >= 2 * self.hold_frames and span_s >= (2 * self.hold_frames - 1) * gap - 0.5 * P:
             steady = sorted(recent)[len(recent) // 2]
             # (a lag of zero or less: a clock that reads the frames' stamps, e.g. /clock from
@@ -259,8 +262,7 @@ class FrameGovernor:
                 # one estimate's lag is one camera's image and its wait behind the others',
                 # not the rig's frame: it cannot say how much more the graph can take, so the
                 # fraction goes up a step at a time and the growing rule finds the cost
-                higher = [x for x in steps if x > self.fraction]
-                up = min(up, higher[0]) if higher else up
+                up = min(up, self._step(up=True))
             fraction = min(max(self.fraction, up), Fraction(1))
         if fraction == self.fraction:
             return None
