@@ -20,6 +20,10 @@ triangulated from those poses carry it (loop ATE 1.07 -> 0.74 %, rotation drift 
 
 With a gyro (`gyro_bias=True`) the state has 3 more: b_g, the gyro's bias in base_link
 (rad/s), a random walk; a gyro measures w + b_g (update_gyro), the cameras tell the two apart.
+With the gyro comes the accelerometer: 3 more, b_a, its bias in base_link (m/s^2), a random
+walk. At rest or in steady motion it reads gravity's reaction, g R^T e_z + b_a
+(update_gravity): roll and pitch, not yaw. A tilt and a bias read alike until the body turns
+about the vertical (the bias turns with the body, the tilt does not): then the two part.
 Without one the state stays the 12 above, and so do the results, to the last bit.
 
 Everything the filter holds is guarded: covariances are symmetrised and their eigenvalues
@@ -47,26 +51,31 @@ class BodyEkfParams:
     arc_integration: bool = True         # position along the arc of the twist (False: the chord)
     gyro_bias_std: float = 0.01          # rad/s: the gyro bias's prior (gyro_bias=True)
     gyro_bias_walk: float = 1e-4         # rad/s/sqrt(s): its random walk
+    accel_bias_std: float = 0.1          # m/s^2: the accelerometer bias's prior (gyro_bias=True)
+    accel_bias_walk: float = 1e-3        # m/s^2/sqrt(s): its random walk
 
 
 BIAS = slice(12, 15)        # the gyro bias's place in the state (gyro_bias=True)
+ACCEL_BIAS = slice(15, 18)  # the accelerometer bias's
+STANDARD_GRAVITY = 9.80665  # m/s^2: what an accelerometer at rest reads, up
 
 
 class BodyEKF:
     def __init__(self, params: Optional[BodyEkfParams] = None, gyro_bias: bool = False):
         self.params = params or BodyEkfParams()
-        self.dim = 15 if gyro_bias else 12
+        self.dim = 18 if gyro_bias else 12
         self.kf = ExtendedKalmanFilter(dim_x=self.dim, dim_z=6)
         self.kf.x = np.zeros((self.dim, 1))
         self.kf.P = np.zeros((self.dim, self.dim))
         if gyro_bias:
             self.kf.P[BIAS, BIAS] = np.eye(3) * self.params.gyro_bias_std ** 2
+            self.kf.P[ACCEL_BIAS, ACCEL_BIAS] = np.eye(3) * self.params.accel_bias_std ** 2
         self.R_nom = np.eye(3)
         self.reinitialize(np.eye(4), np.eye(6) * 1e-9)
 
     @property
     def has_gyro_bias(self) -> bool:
-        return self.dim == 15
+        return self.dim == 18
 
     # ------------------------------------------------------------------ state access
     def reinitialize(self, T: np.ndarray, cov: np.ndarray, twist: Optional[np.ndarray] = None,
@@ -86,9 +95,9 @@ class BodyEKF:
         tc = twist_cov if twist_cov is not None else np.eye(6) * self.params.initial_twist_std ** 2
         P[6:12, 6:12] = condition_covariance(tc, max_eig=MAX_VARIANCE)
         if self.has_gyro_bias:
-            # the gyro's bias is the sensor's, not the pose's: kept through a restart
-            x[BIAS, 0] = self.kf.x[BIAS, 0]
-            P[BIAS, BIAS] = self.kf.P[BIAS, BIAS]
+            # the IMU's biases are the sensor's, not the pose's: kept through a restart
+            x[12:, 0] = self.kf.x[12:, 0]
+            P[12:, 12:] = self.kf.P[12:, 12:]
         self.kf.x = x
         self.kf.P = P
 
@@ -113,6 +122,11 @@ class BodyEKF:
     def gyro_bias(self) -> Optional[np.ndarray]:
         """The gyro's bias estimate in base_link (rad/s); None without a gyro."""
         return self.kf.x[BIAS, 0].copy() if self.has_gyro_bias else None
+
+    @property
+    def accel_bias(self) -> Optional[np.ndarray]:
+        """The accelerometer's bias estimate in base_link (m/s^2); None without an IMU."""
+        return self.kf.x[ACCEL_BIAS, 0].copy() if self.has_gyro_bias else None
 
     @property
     def gyro_bias_covariance(self) -> Optional[np.ndarray]:
@@ -171,6 +185,7 @@ class BodyEKF:
         Q = np.zeros((self.dim, self.dim))
         if self.has_gyro_bias:
             Q[BIAS, BIAS] = np.eye(3) * self.params.gyro_bias_walk ** 2 * dt
+            Q[ACCEL_BIAS, ACCEL_BIAS] = np.eye(3) * self.params.accel_bias_walk ** 2 * dt
         for i, q in ((0, qa), (3, qw)):          # (p, v) and (theta, w): white-acceleration blocks
             Q[i:i + 3, i:i + 3] = np.eye(3) * q * dt ** 3 / 3
             Q[i:i + 3, i + 6:i + 9] = R * q * dt ** 2 / 2   # odom position vs body velocity
@@ -279,6 +294,23 @@ class BodyEKF:
         H = np.zeros((3, self.dim))
         H[:, BIAS] = np.eye(3)
         return self._update_gated(m[0], H, m[1], gate_chi2)
+
+    def update_gravity(self, specific_force: Sequence[float], cov: np.ndarray,
+                       gate_chi2: float = float('inf')) -> Tuple[bool, float]:
+        """The specific force an accelerometer reads in base_link (m/s^2, at base_link's
+        origin, the body's own acceleration taken out; cov 3x3): g R^T e_z + b_a. With
+        R = exp([dtheta]x) R_nom, R^T e_z is to first order R_nom^T (e_z + [e_z]x dtheta):
+        roll and pitch, not yaw (about e_z). Needs gyro_bias=True."""
+        m = self._gyro_measurement('update_gravity', specific_force, cov)
+        if m is None:
+            return False, float('inf')
+        up = np.array([0.0, 0.0, 1.0])
+        H = np.zeros((3, self.dim))
+        H[:, 3:6] = STANDARD_GRAVITY * self.R_nom.T @ se3.skew(up)
+        H[:, ACCEL_BIAS] = np.eye(3)
+        h = STANDARD_GRAVITY * self.R_nom.T @ up + self.kf.x[ACCEL_BIAS, 0]
+        # (z = H x + y makes filterpy's residual z - H x the innovation y)
+        return self._update_gated(H @ self.kf.x + (m[0][:, 0] - h).reshape(3, 1), H, m[1], gate_chi2)
 
     def _schmidt_update(self, y, H, Rm, frozen: slice) -> bool:
         """Kalman update with the `frozen` states' gain set to zero (Joseph form, which

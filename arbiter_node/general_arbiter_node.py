@@ -37,7 +37,7 @@ from multicam_ego_motion.ros_plumbing.node_parameters import declare_from_table
 from multicam_ego_motion.ros_plumbing.pose_messages import (covariance_field, estimate_to_msg, fill_pose,
                                                msg_to_estimate, ns_to_stamp, stamp_to_ns,
                                                transform_msg)
-from multicam_ego_motion.ros_plumbing.imu_messages import gyro_sample_from_cdr
+from multicam_ego_motion.ros_plumbing.imu_messages import imu_sample_from_cdr
 from multicam_ego_motion.ros_plumbing.qos import LATCHED, RELIABLE, imu_qos
 from multicam_ego_motion.geometry.rig import load_rig
 from multicam_ego_motion.geometry.se3 import is_valid_covariance
@@ -142,12 +142,13 @@ class GeneralArbiterNode(Node):
 
     def on_imu(self, data: bytes):
         try:
-            s = gyro_sample_from_cdr(data)
+            s = imu_sample_from_cdr(data)
         except ValueError as e:
             problem = f'sample not used: {e}'
             self.imu_unreadable += 1
         else:
-            problem = self.fusion.add_imu(s.stamp_ns, s.gyro, s.gyro_covariance, s.frame_id)
+            problem = self.fusion.add_imu(s.stamp_ns, s.gyro, s.gyro_covariance, s.frame_id,
+                                          s.accel, s.accel_covariance)
         if problem is not None and problem != self.imu_error:
             self.get_logger().error(f'{self.rig.imu.topic}: {problem}', throttle_duration_sec=5.0)
         self.imu_error = problem
@@ -163,6 +164,8 @@ class GeneralArbiterNode(Node):
         bias = self.fusion.ekf.gyro_bias
         values['gyro_bias_rad_s'] = ' '.join(f'{b:+.5f}' for b in bias)
         values['gyro_bias_fixes'] = self.fusion.bias_fixes     # measured from the tracks
+        values['accel_bias_m_s2'] = ' '.join(f'{b:+.4f}' for b in self.fusion.ekf.accel_bias)
+        values['gravity_fixes'] = self.fusion.gravity_fixes   # frame steps whose accelerometer measured up
         values['imu_unreadable'] = self.imu_unreadable
         if (health.state, health.problem) != self.imu_said:
             self.imu_said = (health.state, health.problem)

@@ -1,5 +1,7 @@
 """An IMU's samples between the general arbiter's frames (ROS-free): the gyro's mean rate
-over a frame step in base_link, with its covariance, for BodyEKF.update_gyro.
+over a frame step in base_link, with its covariance, for BodyEKF.update_gyro; and the
+accelerometer's mean specific force over the step at base_link's origin, for
+BodyEKF.update_gravity.
 
 Samples come in the IMU's own frame (REP-145: the message's frame_id); the mount, base_link
 -> IMU frame from /tf_static or the rig file, turns them into base_link. The step's rotation
@@ -9,7 +11,14 @@ Its covariance is the white noise's: a sample's variance (the message's covarian
 `gyro_variance`) over the samples averaged. The bias is the filter's business.
 
 A sample that is not finite or not after the newest one is refused with the reason; a step
-the samples do not cover (a gap longer than `max_gap_s`) has no rate.
+the samples do not cover (a gap longer than `max_gap_s`) has no rate. An accelerometer reading
+that is missing (REP-145: -1 in its covariance) or not finite leaves the gyro's sample in use
+and the step without a specific force.
+
+The specific force is moved from the IMU's place (`translation`, in base_link) to base_link's
+origin: an IMU 0.28 m off the origin feels 1 m/s^2 of centripetal acceleration in a 1.9 rad/s
+spin, a 6 deg tilt of the gravity it reads. The step's mean of w x (w x r) is taken sample by
+sample, and of dw/dt x r from the rates at the step's two ends (the mean of a derivative).
 """
 import math
 from bisect import bisect_right
@@ -32,7 +41,8 @@ def plain_floats(values) -> tuple:
 
 class ImuBuffer:
     def __init__(self, R_base_imu: np.ndarray, gyro_variance: float = 1e-5,
-                 max_gap_s: float = 0.05, keep_s: float = 5.0):
+                 max_gap_s: float = 0.05, keep_s: float = 5.0, translation=(0.0, 0.0, 0.0),
+                 accel_variance: float = 1e-3):
         R = np.asarray(R_base_imu, float)
         if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6):
             raise ValueError('IMU mount: not a rotation')
@@ -43,11 +53,17 @@ class ImuBuffer:
         self.stamps: List[int] = []
         self.rates: List[tuple] = []               # rad/s in the IMU's frame
         self.variances: List[float] = []           # per axis, of one sample
+        self.r = np.asarray(translation, float).reshape(3)
+        self.accel_variance = float(accel_variance)
+        self.accels: List[Optional[tuple]] = []    # m/s^2 in the IMU's frame; None: no reading
+        self.accel_variances: List[float] = []
         self._means: Dict[Tuple[int, int], Tuple[np.ndarray, np.ndarray]] = {}   # mean_rate's latest
 
-    def add(self, stamp_ns: int, gyro, gyro_covariance=None) -> Optional[str]:
-        """One sample (gyro in the IMU's frame, rad/s; its 3x3 covariance or None). Returns
-        why it was refused, None when taken."""
+    def add(self, stamp_ns: int, gyro, gyro_covariance=None, accel=None,
+            accel_covariance=None) -> Optional[str]:
+        """One sample (gyro in the IMU's frame, rad/s; its 3x3 covariance or None; the
+        accelerometer's specific force, m/s^2, and its covariance, or None). Returns why it
+        was refused, None when taken."""
         # (plain floats, turned into base_link when a step is integrated: 200 samples a
         # second, where small numpy operations per sample cost more than the integration)
         g = plain_floats(gyro)
@@ -64,12 +80,26 @@ class ImuBuffer:
             # REP-145: all zeros is "unknown", -1 in the first element "not measured"
             if len(c) == 9 and all(math.isfinite(v) for v in c) and c[0] > 0:
                 var = max(c[0], c[4], c[8])
+        a, a_var = None, self.accel_variance
+        if accel is not None:
+            a = plain_floats(accel)
+            if len(a) != 3 or not all(math.isfinite(v) for v in a):
+                a = None
+            if accel_covariance is not None:
+                c = plain_floats(accel_covariance)
+                if len(c) == 9 and c[0] == -1.0:
+                    a = None                     # REP-145: not measured
+                elif len(c) == 9 and all(math.isfinite(v) for v in c) and c[0] > 0:
+                    a_var = max(c[0], c[4], c[8])
         self.stamps.append(int(stamp_ns))
         self.rates.append(g)
         self.variances.append(var)
+        self.accels.append(a)
+        self.accel_variances.append(a_var)
         if self.stamps[0] <= int(stamp_ns) - self.keep_ns:
             cut = bisect_right(self.stamps, int(stamp_ns) - self.keep_ns)
-            del self.stamps[:cut], self.rates[:cut], self.variances[:cut]
+            del (self.stamps[:cut], self.rates[:cut], self.variances[:cut], self.accels[:cut],
+                 self.accel_variances[:cut])
         return None
 
     def settled(self, stamp_ns: int) -> bool:
@@ -109,3 +139,29 @@ class ImuBuffer:
         while len(self._means) > MEANS_KEPT:
             del self._means[next(iter(self._means))]
         return out
+
+    def mean_specific_force(self, t0_ns: int, t1_ns: int) -> Optional[Tuple[np.ndarray, float]]:
+        """(the mean specific force over (t0, t1] at base_link's origin, in base_link (m/s^2),
+        the variance per axis of that mean's white noise), or None when the samples do not
+        cover the step or one of them has no accelerometer reading."""
+        if t1_ns <= t0_ns or not self.stamps or self.stamps[-1] < t1_ns:
+            return None
+        i0 = bisect_right(self.stamps, t0_ns)
+        i1 = bisect_right(self.stamps, t1_ns)
+        if i0 == 0 or i1 - i0 < 2:
+            return None
+        acc = self.accels[i0:i1]
+        if any(a is None for a in acc):
+            return None
+        stamps = self.stamps[i0 - 1:i1]
+        if max(b - a for a, b in zip(stamps, stamps[1:])) > self.max_gap_ns:
+            return None
+        f = np.asarray(acc) @ self.R.T                        # (n, 3) in base_link
+        w = np.asarray(self.rates[i0:i1]) @ self.R.T
+        r = self.r
+        # at the origin: f_origin = f_imu - dw/dt x r - w x (w x r)
+        centripetal = np.cross(w, np.cross(w, r)).mean(axis=0)
+        dt = (self.stamps[i1 - 1] - self.stamps[i0]) * 1e-9
+        angular = np.cross((w[-1] - w[0]) / dt, r) if dt > 0 else np.zeros(3)
+        n = len(acc)
+        return f.mean(axis=0) - centripetal - angular, float(np.mean(self.accel_variances[i0:i1])) / n

@@ -30,7 +30,7 @@ from camera_pose_nodes.pose_estimate import PoseEstimate
 from camera_pose_nodes.quarter_estimator import QuarterEstimator, QuarterParams
 from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
 from multicam_ego_motion.errors import UserError
-from multicam_ego_motion.ros_plumbing.imu_messages import gyro_sample_from_cdr
+from multicam_ego_motion.ros_plumbing.imu_messages import imu_sample_from_cdr
 from multicam_ego_motion.ros_plumbing.pose_messages import estimate_to_msg, msg_to_estimate, stamp_to_ns
 
 
@@ -192,10 +192,11 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             # by when its gyro samples are in, as the general arbiter waits for them)
             c0 = time.process_time()
             try:
-                sample = gyro_sample_from_cdr(msg)
+                sample = imu_sample_from_cdr(msg)
             except ValueError as e:
                 raise UserError(f'bag {bag_path}: {imu_topic}: {e}') from None
-            fusion.add_imu(sample.stamp_ns, sample.gyro, sample.gyro_covariance, sample.frame_id)
+            fusion.add_imu(sample.stamp_ns, sample.gyro, sample.gyro_covariance, sample.frame_id,
+                           sample.accel, sample.accel_covariance)
             result.imu_cpu_ms += (time.process_time() - c0) * 1e3
             continue
         if topic in info_topic:

@@ -1,5 +1,6 @@
-"""sensor_msgs/Imu, as its subscription's CDR bytes -> the gyro's sample as the fusion core
-takes it (arbiter_node/imu_buffer). Read field by field (cdr_stream): 200 samples a second."""
+"""sensor_msgs/Imu, as its subscription's CDR bytes -> the gyro's and the accelerometer's sample
+as the fusion core takes it (arbiter_node/imu_buffer). Read field by field (cdr_stream): 200
+samples a second."""
 from dataclasses import dataclass
 from typing import Tuple
 
@@ -11,17 +12,20 @@ IMU_TYPE = 'sensor_msgs/msg/Imu'
 
 
 @dataclass(frozen=True)
-class GyroSample:
+class ImuSample:
     stamp_ns: int
     frame_id: str
     gyro: Tuple[float, float, float]      # angular velocity (rad/s) in the message's frame
     # its 3x3 covariance as the driver gave it (REP-145: all zeros = unknown, -1 first = not
     # measured; the buffer then takes its default variance)
     gyro_covariance: np.ndarray
+    accel: Tuple[float, float, float] = (0.0, 0.0, 0.0)   # linear acceleration (specific force, m/s^2)
+    accel_covariance: np.ndarray = None   # as gyro_covariance (-1 first: the driver has no accelerometer)
 
 
-def gyro_sample_from_cdr(data) -> GyroSample:
-    """The gyro's sample of one serialized sensor_msgs/Imu; ValueError naming the problem."""
+def imu_sample_from_cdr(data) -> ImuSample:
+    """The gyro's and accelerometer's sample of one serialized sensor_msgs/Imu; ValueError
+    naming the problem."""
     try:
         r = CdrReader(data)
         stamp_ns, frame_id = r.stamp_and_frame()
@@ -30,4 +34,5 @@ def gyro_sample_from_cdr(data) -> GyroSample:
         v = r.unpack('37d', 8)
     except Exception as e:  # struct.error, IndexError, UnicodeDecodeError, ValueError
         raise ValueError(f'{len(data)} bytes that do not read as {IMU_TYPE} ({type(e).__name__}: {e})') from None
-    return GyroSample(stamp_ns, frame_id, v[13:16], np.array(v[16:25]).reshape(3, 3))
+    return ImuSample(stamp_ns, frame_id, v[13:16], np.array(v[16:25]).reshape(3, 3),
+                     v[25:28], np.array(v[28:37]).reshape(3, 3))
