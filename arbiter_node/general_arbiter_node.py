@@ -101,6 +101,10 @@ class GeneralArbiterNode(Node):
         self.map_scale_epoch = 0
         # Over a road: the road's normal the quarters put their road points on (road_normal)
         self.pub_road_normal = self.create_publisher(Vector3Stamped, '/ego_motion/road_normal', RELIABLE)
+        # With the IMU: the gyro's bias for the quarters' steering (gyro_steer), not finite
+        # while the gyro is out; latched, for a quarter that starts or moves later
+        self.pub_gyro_bias = (self.create_publisher(Vector3Stamped, '/ego_motion/gyro_bias', LATCHED)
+                              if self.fusion.wants_imu() else None)
         self.pub_fused = self.create_publisher(PoseWithCovarianceStamped, '/ego_motion/fused_pose', RELIABLE)
         self.pub_odom = self.create_publisher(Odometry, '/odom', RELIABLE)
         self.pub_tf = self.create_publisher(TFMessage, '/tf', RELIABLE)
@@ -276,6 +280,7 @@ class GeneralArbiterNode(Node):
             self.govern(g.stamp_ns)
             self.publish_map_scale()
             self.publish_road_normal(g.stamp_ns)
+            self.publish_gyro_bias(g.stamp_ns)
             self.publish(fused, g, ms)
             if self.on_frame_done is not None:
                 self.on_frame_done(self)
@@ -312,6 +317,19 @@ class GeneralArbiterNode(Node):
             msg.header.frame_id = self.p['base_frame']
             msg.vector.x, msg.vector.y, msg.vector.z = (float(v) for v in up)
             self.pub_road_normal.publish(msg)
+
+    def publish_gyro_bias(self, stamp_ns):
+        """The gyro's bias as of this frame, before its fused pose (the quarters steer the
+        next frame by it); NaN while the gyro is out (a bad IMU: they do not steer by it)."""
+        if self.pub_gyro_bias is None:
+            return
+        bias = self.fusion.gyro_steer_bias()
+        msg = Vector3Stamped()
+        msg.header.stamp = ns_to_stamp(stamp_ns)
+        msg.header.frame_id = self.p['base_frame']
+        msg.vector.x, msg.vector.y, msg.vector.z = ((float('nan'),) * 3 if bias is None
+                                                    else (float(v) for v in bias))
+        self.pub_gyro_bias.publish(msg)
 
     def publish_map_scale(self):
         """A new map rescale, before the fused pose (it applies from the next frame on)."""

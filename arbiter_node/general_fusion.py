@@ -21,8 +21,8 @@ import numpy as np
 from arbiter_node.body_ekf import STANDARD_GRAVITY, BodyEKF, BodyEkfParams
 from arbiter_node.camera_median import median_filter
 from arbiter_node.covariance import condition_covariance
-from arbiter_node.imu_buffer import ImuBuffer
-from arbiter_node.imu_health import ImuHealth, ImuHealthLimits
+from multicam_ego_motion.imu.imu_buffer import ImuBuffer
+from multicam_ego_motion.imu.imu_health import ImuHealth, ImuHealthLimits
 from arbiter_node.quarter_fusion import CHI2_6DOF_999, information_fusion
 from arbiter_node.time_shift import shift_pose
 from arbiter_node.rig_motion_fit import fit_rig_motion, refine_rig_motion
@@ -222,6 +222,13 @@ class GeneralFusion:
             refused = self.imu.add(stamp_ns, gyro, gyro_covariance, accel, accel_covariance)
         self.imu_health.sample(stamp_ns, frame_id, gyro, refused)
         return refused
+
+    def gyro_steer_bias(self) -> Optional[np.ndarray]:
+        """For the quarters (gyro_steer): the gyro bias (base_link, rad/s) as of the last
+        step, while the gyro carries the steps; None when it does not (no IMU, or a bad one)."""
+        if self.imu is None or not self.gyro_used or self.ekf.gyro_bias is None:
+            return None
+        return np.array(self.ekf.gyro_bias, float)
 
     def imu_settled(self, stamp_ns: int) -> bool:
         """The IMU's samples cover the time up to stamp_ns, or it is silent, or it is heard

@@ -13,6 +13,8 @@ number of measurements changes every frame, so H and R are built per update.
 Each step runs either here (numpy/filterpy: the reference) or in the native kernel
 (camera_pose_nodes.kernel selects it), on the same state: kf.x, kf.P, R_nom, stamp_ns.
 """
+from typing import Optional
+
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
@@ -104,8 +106,12 @@ class PoseEKF:
         self.kf.P = P
 
     # ----- predict -----------------------------------------------------------------------
-    def predict(self, stamp_ns: int):
-        """Constant-velocity prediction to `stamp_ns` (no-op for the first or a repeated stamp)."""
+    def predict(self, stamp_ns: int, body_rate: Optional[np.ndarray] = None):
+        """Constant-velocity prediction to `stamp_ns` (no-op for the first or a repeated stamp).
+        body_rate: the body's mean angular rate over the step as a gyro measured it (base_link,
+        rad/s): the predicted rotation is the last one turned by it instead of by the filter's
+        own rate, the covariance as the model has it (the update is linearized there; the
+        cameras still measure the rotation)."""
         if self.stamp_ns is None:
             self.stamp_ns = int(stamp_ns)
             return
@@ -113,10 +119,17 @@ class PoseEKF:
         if dt <= 0.0:
             return   # out-of-order/duplicate stamp: never run the model backwards
         self.stamp_ns = int(stamp_ns)
+        R_before = self.R_nom.copy()
         if self._native:
             self._set_native_state(*kernel.native.ekf_predict(
                 *self._native_state(), dt, self.accel_sigma, self.alpha_sigma))
-            return
+        else:
+            self._predict_numpy(dt)
+        if body_rate is not None and np.all(np.isfinite(body_rate)):
+            self.R_nom = R_before @ rotvec_to_R(np.asarray(body_rate, float) * dt)
+            self.kf.x[TH, 0] = 0.0
+
+    def _predict_numpy(self, dt: float):
         F = np.eye(DIM)
         F[P_, V_] = np.eye(3) * dt
         # dtheta (odom) integrates the body rate rotated into odom: R_nom w dt. Since

@@ -11,7 +11,7 @@ fixes rotation but not distance (see docs/estimator.md).
 """
 import math
 import time
-from dataclasses import field, fields, make_dataclass
+from dataclasses import field, fields, make_dataclass, replace
 from functools import lru_cache
 from typing import Dict, Optional
 
@@ -120,6 +120,7 @@ PARAMETERS = {
     'accel_sigma': (2.0, 'process noise: white linear acceleration (m/s^2/sqrt(Hz))', 1e-4, 100.0),
     'alpha_sigma': (2.0, 'process noise: white angular acceleration (rad/s^2/sqrt(Hz))', 1e-4, 100.0),
     'predict_flow': (True, "start each feature's Lucas-Kanade search where the camera's rotation (this quarter's angular rate) moves it, not at zero flow", None, None),
+    'gyro_steer': (True, "with the rig's IMU in use (the quarter node's and the general arbiter's use_imu): each frame's search starts, and the filter's predicted rotation is, where the gyro turned the camera since the last frame (gyro_steer), not where the last rate held constant puts it: spinning up at 8 Hz that lagged by degrees a frame and every camera lost its tracks for 3 s", None, None),
     'predict_translation_min_speed': (3.0, "from this speed (m/s) on, each feature's search also starts moved by the camera's translation since the last estimate, at its landmark's depth or where its ray meets the floor (flow_prediction): at car speed near points move 100 px a frame", 0.0, 1000.0),
     'epipolar': (True, 'also measure tracks without a landmark by their epipolar line to an earlier fused view', None, None),
     'epipolar_min_baseline': (0.05, 'shortest camera baseline (m) for an epipolar measurement', 0.001, 10.0),
@@ -272,6 +273,9 @@ class QuarterEstimator:
         # (stamp, body angular rate) of the last estimate: steers the next frame's tracking.
         # Kept as it was then, so a flow computed early (prefetch) or late is the same.
         self._motion = None
+        # The rig's gyro (gyro_steer.GyroSteer), set by the host with an IMU: the search's
+        # start and the filter's predicted rotation follow it over each frame step.
+        self.gyro = None
         self._extract_due = None   # stamp whose new features are still to be extracted
         self._cells_due = False    # ... in the grid's cells (too few tracks in the quarter)
         self._lane_want = 0        # ... this many in the lane ahead (road_lane_features)
@@ -373,7 +377,10 @@ class QuarterEstimator:
         t3 = time.thread_time()
 
         stamp_before = self.ekf.stamp_ns
-        self.ekf.predict(stamp_ns)
+        # (the gyro's rotation over the step, where it is in use: the update is linearized
+        # there, not at the last rate held constant)
+        self.ekf.predict(stamp_ns, None if self.gyro is None or stamp_before is None
+                         else self.gyro.rate(stamp_before, stamp_ns))
         if self.uses_road:
             if self.params.road_first_step and len(self.fused_poses) == 1:
                 self._relinearize_first_road_step(stamp_ns)
@@ -546,20 +553,34 @@ class QuarterEstimator:
         self._motion.ids = self.tracker.ids[has].copy()
         self._motion.Xc = (X - T[:3, 3]) @ T[:3, :3]
 
-    def _motion_to(self, stamp_ns) -> Optional[float]:
-        """Seconds from the last estimate's motion prior to `stamp_ns`, or None when there is
-        no prior or it may not steer that frame (not before it, or too long before)."""
-        if self._motion is None:
+    def _steering(self, stamp_ns) -> Optional[flow_prediction.MotionPrior]:
+        """The motion that steers the search for `stamp_ns`: the last estimate's prior, or
+        None when there is none or it may not steer that frame (not before it, or too long
+        before). With the gyro in use, the prior's rotation is the gyro's over the step (the
+        prior's own rate held constant lags by degrees a frame when a turn speeds up), and a
+        quarter without a prior (lost, no map yet) gets the gyro's rotation from its last
+        frame alone."""
+        m = self._motion
+        if self.gyro is not None and self.params.predict_flow:
+            t0 = m.stamp_ns if m is not None else self.ekf.stamp_ns
+            if t0 is not None and 0.0 < (int(stamp_ns) - t0) * 1e-9 <= _PREDICT_MAX_DT_S:
+                w = self.gyro.rate(t0, int(stamp_ns))
+                if w is not None:
+                    m = (flow_prediction.MotionPrior(int(t0), w) if m is None
+                         else replace(m, w_body=w))
+        if m is None or not 0.0 < (int(stamp_ns) - m.stamp_ns) * 1e-9 <= _PREDICT_MAX_DT_S:
             return None
-        dt = (int(stamp_ns) - self._motion.stamp_ns) * 1e-9
-        return dt if 0.0 < dt <= _PREDICT_MAX_DT_S else None
+        return m
 
     def _floor_warp(self, stamp_ns) -> Optional[flow_prediction.FloorWarp]:
         """On a road, the floor's homography from the last estimate's motion to `stamp_ns`
         (KLTTracker._recover_on_floor), or None."""
-        if not self.uses_road or self.klt_cfg.floor_warp_min_flow_px <= 0 or self._motion_to(stamp_ns) is None:
+        if not self.uses_road or self.klt_cfg.floor_warp_min_flow_px <= 0:
             return None
-        return flow_prediction.floor_warp(self._motion, stamp_ns, self.T_base_cam, self.intrinsics,
+        motion = self._steering(stamp_ns)
+        if motion is None:
+            return None
+        return flow_prediction.floor_warp(motion, stamp_ns, self.T_base_cam, self.intrinsics,
                                           self.tracker.ids, self.floor_z)
 
     def _flow_predictor(self, stamp_ns):
@@ -570,15 +591,16 @@ class QuarterEstimator:
         behind there); from the rotation's prediction it converges in a few steps. The
         translation moves near points only: it is left to the search below
         predict_translation_min_speed (flow_prediction above it)."""
-        dt = self._motion_to(stamp_ns)
-        if dt is None:
+        motion = self._steering(stamp_ns)
+        if motion is None:
             return None
-        if self._motion.v_body is not None:
-            return flow_prediction.predictor(self._motion, stamp_ns, self.T_base_cam, self.intrinsics,
+        if motion.v_body is not None:
+            return flow_prediction.predictor(motion, stamp_ns, self.T_base_cam, self.intrinsics,
                                              self.tracker.ids, self.floor_z if self.uses_floor else None)
+        dt = (int(stamp_ns) - motion.stamp_ns) * 1e-9
         R_bc = self.T_base_cam[:3, :3]
         # directions in camera 1 -> camera 2: R_bc^T exp(-[w] dt) R_bc (w in the body frame)
-        R21 = R_bc.T @ rotvec_to_R(-self._motion.w_body * dt) @ R_bc
+        R21 = R_bc.T @ rotvec_to_R(-motion.w_body * dt) @ R_bc
         intr = self.intrinsics
 
         def rotate(R):

@@ -25,7 +25,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu, PointCloud2
 from std_msgs.msg import Int64MultiArray
 
 from camera_pose_nodes import kernel
@@ -33,6 +33,7 @@ from camera_pose_nodes.camera_model import intrinsics_from_msg
 from camera_pose_nodes.frame_schedule import FrameSchedule, ScheduleBook
 from camera_pose_nodes.map_scale import MapScaleCommand
 from camera_pose_nodes.decoded_images import SHARED as DECODED
+from camera_pose_nodes.gyro_steer import GyroSteer
 from camera_pose_nodes.image_conversion import bgr8_message
 from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, QuarterParams, road_normal_of
 from multicam_ego_motion.ros_plumbing import diagnostics
@@ -41,7 +42,7 @@ from multicam_ego_motion.errors import UserError
 from multicam_ego_motion.ros_plumbing.node_main import spin_node
 from multicam_ego_motion.ros_plumbing.node_parameters import declare_from_table
 from multicam_ego_motion.ros_plumbing.pose_messages import estimate_to_msg, msg_to_estimate, stamp_to_ns
-from multicam_ego_motion.ros_plumbing.qos import LATCHED, RELIABLE, RELIABLE_IMAGES, image_qos
+from multicam_ego_motion.ros_plumbing.qos import LATCHED, RELIABLE, RELIABLE_IMAGES, image_qos, imu_qos
 from multicam_ego_motion.ros_plumbing.recent_outputs import RecentOutputs
 from multicam_ego_motion.geometry.rig import load_rig, with_transport
 
@@ -63,6 +64,10 @@ NODE_PARAMETERS = {
     'partner_timeout_s': (5.0, 'stereo pair: longest hold of a fused pose for the partner camera\'s image of its frame (then applied without stereo matches)', 0.0, 600.0),
     'map_scale_topic': ('/ego_motion/map_scale', 'map rescales of the general arbiter when a scale source appears (camera_pose_nodes/map_scale)', None, None),
     'road_normal_topic': ('/ego_motion/road_normal', "the general arbiter's road normal (base_link) at each frame over a road: the road points are put on it (road_normal)", None, None),
+    'use_imu': (False, "subscribe to the rig's IMU (rig file `imu`, its topic) and start each frame's search, and the filter's predicted rotation, where its gyro turned the camera (gyro_steer), while the general arbiter uses the gyro (its use_imu: set both) and says its bias on gyro_bias_topic", None, None),
+    'imu_qos': ('sensor_data', 'IMU subscription QoS: sensor_data (best effort, as drivers publish) or reliable (lockstep replay)', None, None),
+    'imu_wait_s': (0.05, "use_imu: the longest an image waits for the gyro's samples up to its stamp (while the gyro is in use)", 0.0, 60.0),
+    'gyro_bias_topic': ('/ego_motion/gyro_bias', "the general arbiter's gyro bias (base_link, rad/s) at each frame while it uses the gyro, not finite while it does not (a bad IMU): use_imu steers only while it is finite", None, None),
     'debug_images': (False, 'publish tracks (bgr8): this quarter\'s part of the image with its features, their flow and landmark/epipolar status drawn, which the camera arbiter (debug_images too) puts together into /<cam>/tracks; off: nothing drawn or published', None, None),
 }
 
@@ -80,6 +85,18 @@ def decode_fused(msg: PoseWithCovarianceStamped):
         est.covariance.flags.writeable = False
         _last_fused = (msg, est)
     return _last_fused[1]
+
+
+# The rig's gyro, one per process and IMU (topic, frame): every quarter of a worker steers by
+# the same samples, each taken once (gyro_steer).
+_GYRO_STEERS = {}
+
+
+def shared_gyro_steer(rig) -> GyroSteer:
+    key = (rig.imu.topic, rig.imu.frame_id, rig.imu.rotation.tobytes())
+    if key not in _GYRO_STEERS:
+        _GYRO_STEERS[key] = GyroSteer.for_rig(rig)
+    return _GYRO_STEERS[key]
 
 
 class QuarterNode(Node):
@@ -103,6 +120,10 @@ class QuarterNode(Node):
         self.partner_timeout_s = p['partner_timeout_s']
         self.floor_z = rig.floor_z
         self.road = rig.road_scale
+        self.gyro = (shared_gyro_steer(rig) if p['use_imu'] and rig.imu is not None
+                     and self.params.gyro_steer else None)
+        self.imu_wait_s = p['imu_wait_s']
+        self.waits_for_gyro = False     # an image waits for the gyro's samples (on_imu drains)
         self.quarter = int(p['quarter'])
         self.source = f'{self.camera.name}/q{self.quarter}'
         self.feedback_timeout_s = p['feedback_timeout_s']
@@ -150,6 +171,13 @@ class QuarterNode(Node):
                        self.camera.input_topic: (IMAGE_TYPES[self.camera.transport],
                                                  image_qos(p['image_qos']), self.on_image),
                        p['fused_pose_topic']: (PoseWithCovarianceStamped, RELIABLE, self.on_fused)}
+        if self.gyro is not None:
+            # (the bias before the fused pose: when both wait, the executor takes them in
+            # creation order, and the next frame steers by the bias of the frame before)
+            self.inputs = {**{k: v for k, v in self.inputs.items() if k != p['fused_pose_topic']},
+                           rig.imu.topic: (Imu, imu_qos(p['imu_qos']), self.on_imu),
+                           p['gyro_bias_topic']: (Vector3Stamped, LATCHED, self.on_gyro_bias),
+                           p['fused_pose_topic']: self.inputs[p['fused_pose_topic']]}
         if self.partner is not None:
             self.inputs[self.partner.input_topic] = (IMAGE_TYPES[self.partner.transport],
                                                      image_qos(p['image_qos']), self.on_partner_image)
@@ -177,6 +205,7 @@ class QuarterNode(Node):
             return
         self.estimator = QuarterEstimator(self.camera, self.quarter, self.intrinsics, self.params,
                                           (msg.width, msg.height), self.floor_z, self.road)
+        self.estimator.gyro = self.gyro
         for command in self.scale_commands:
             self.estimator.rescale_command(command)
         for stamp_ns, up in self.road_normals:
@@ -284,6 +313,25 @@ class QuarterNode(Node):
         self.road_normals.append((stamp_ns, up))
         if self.estimator is not None:
             self.estimator.add_road_normal(stamp_ns, up)
+
+    def on_imu(self, msg: Imu):
+        # (the arbiter says what is wrong with a bad sample; here it is only not used)
+        self.gyro.add(stamp_to_ns(msg.header.stamp), msg.header.frame_id,
+                      (msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z))
+        if self.waits_for_gyro and self.pending and self.gyro_ready(self.pending[0][1], self.pending[0][0]):
+            self.drain()
+            self.offer_work_ahead()
+
+    def on_gyro_bias(self, msg: Vector3Stamped):
+        self.gyro.set_bias(stamp_to_ns(msg.header.stamp), (msg.vector.x, msg.vector.y, msg.vector.z))
+
+    def gyro_ready(self, msg, arrived) -> bool:
+        """The gyro's samples up to the image's stamp are in (its search and prediction
+        follow them), or the gyro is not used, or the image waited imu_wait_s for them."""
+        ready = (self.gyro is None or self.gyro.settled(stamp_to_ns(msg.header.stamp))
+                 or time.monotonic() - arrived > self.imu_wait_s)
+        self.waits_for_gyro = not ready
+        return ready
 
     def on_fused(self, msg: PoseWithCovarianceStamped):
         stamp_ns = stamp_to_ns(msg.header.stamp)
@@ -395,7 +443,7 @@ class QuarterNode(Node):
                     self.publish_diag(msg.header.stamp, 'error', f'{why}: image dropped')
                     continue
                 return
-            if not self.ready_for_next(arrived):
+            if not self.ready_for_next(arrived) or not self.gyro_ready(msg, arrived):
                 return
             _, msg = self.pending.popleft()
             self.process(msg)
@@ -403,7 +451,8 @@ class QuarterNode(Node):
     def can_prefetch(self) -> bool:
         return (self.estimator is not None and bool(self.pending)
                 and not self.estimator.prefetched(stamp_to_ns(self.pending[0][1].header.stamp))
-                and not self.ready_for_next(self.pending[0][0]))
+                and not self.ready_for_next(self.pending[0][0])
+                and self.gyro_ready(self.pending[0][1], self.pending[0][0]))
 
     def offer_work_ahead(self):
         if self.estimator is not None and (self.estimator.extraction_due() or self.can_prefetch()):
@@ -546,6 +595,7 @@ class QuarterNode(Node):
         self.intrinsics = s['intrinsics']
         self.estimator = QuarterEstimator(self.camera, self.quarter, self.intrinsics, self.params,
                                           tuple(s['image_size']), self.floor_z, self.road)
+        self.estimator.gyro = self.gyro
         self.estimator.set_state(s['estimator'])
         if s.get('partner_intrinsics') is not None and self.partner is not None:
             self.partner_intrinsics = s['partner_intrinsics']

@@ -185,12 +185,15 @@ def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False,
         general['odom_rate_hz'] = 0.0     # the player waits for each fused stamp's /odom
     if sync_window_s is not None:     # (left out when not given: the params file's value stands)
         general['sync_window_s'] = float(sync_window_s)
-    if use_imu is not None:           # (likewise)
-        general['use_imu'] = bool(use_imu)
     # (image_transport: the rig replay hands the nodes has each camera's transport as the
     # bag holds it, which a params file's image_transport must not override)
-    overrides = {'quarter': {'image_qos': 'reliable' if lockstep else 'sensor_data',
-                             'feedback_timeout_s': wait, 'image_transport': ''},
+    quarter = {'image_qos': 'reliable' if lockstep else 'sensor_data',
+               'feedback_timeout_s': wait, 'image_transport': '',
+               # (the quarters steer by the gyro while the general arbiter uses it: gyro_steer)
+               'imu_wait_s': general['imu_wait_s'], 'imu_qos': general['imu_qos']}
+    if use_imu is not None:           # (likewise)
+        general['use_imu'] = quarter['use_imu'] = bool(use_imu)
+    overrides = {'quarter': quarter,
                  'camera_arbiter': {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2},
                  'general_arbiter': general}
     if debug_images:          # (left out when off: the params file's value stands)

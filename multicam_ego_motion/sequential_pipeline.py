@@ -25,6 +25,7 @@ from arbiter_node.general_fusion import GeneralFusion
 from arbiter_node.quarter_fusion import PARAMETERS as QUARTER_FUSION_PARAMETERS, fuse_quarters
 from arbiter_node.wheel_prior import WheelBuffer, twist_from_odometry
 from camera_pose_nodes.camera_model import intrinsics_from_msg
+from camera_pose_nodes.gyro_steer import GyroSteer
 from camera_pose_nodes.image_conversion import image_msg_to_gray
 from camera_pose_nodes.pose_estimate import PoseEstimate
 from camera_pose_nodes.quarter_estimator import QuarterEstimator, QuarterParams
@@ -79,6 +80,8 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
     imu_topic = rig.imu.topic if fusion.wants_imu() and rig.imu.topic in reader.topics else None
     if imu_topic:
         topics.append(imu_topic)
+    # the quarters' own gyro (quarter nodes with use_imu), the general arbiter's bias after each frame
+    steer = GyroSteer.for_rig(rig) if imu_topic and qp.gyro_steer else None
     by_topic = {c.input_topic: c for c in present}
     info_topic = {c.camera_info_topic: c for c in present}
     estimators = {}   # camera name -> [QuarterEstimator x4]
@@ -130,6 +133,8 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             result.cameras[name].append(cams[name])
         first = min(frame_stamps.values())
         fused = fusion.process(common, cams, wheel_twist=wheel.at(first), wheel_stamp_ns=wheel.stamp_at(first))
+        if steer is not None:
+            steer.set_bias(common, fusion.gyro_steer_bias())
         # (as the quarters get them: before the fused pose; the map scale latched, in time)
         road_up = fusion.road_normal(common)
         command = fusion.map_scale_command
@@ -197,6 +202,8 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
                 raise UserError(f'bag {bag_path}: {imu_topic}: {e}') from None
             fusion.add_imu(sample.stamp_ns, sample.gyro, sample.gyro_covariance, sample.frame_id,
                            sample.accel, sample.accel_covariance)
+            if steer is not None:
+                steer.add(sample.stamp_ns, sample.frame_id, sample.gyro)
             result.imu_cpu_ms += (time.process_time() - c0) * 1e3
             continue
         if topic in info_topic:
@@ -207,6 +214,8 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
                 estimators[cam.name] = [QuarterEstimator(cam, q, intr, qp, (msg.width, msg.height), rig.floor_z,
                                                                 rig.road_scale)
                                         for q in quarters]
+                for q in estimators[cam.name]:
+                    q.gyro = steer
             continue
         cam = by_topic[topic]
         stamp = stamp_to_ns(msg.header.stamp)

@@ -6,8 +6,8 @@ bias and walk) is never flagged over whole scenarios."""
 import numpy as np
 import pytest
 
-from arbiter_node.imu_buffer import ImuBuffer
-from arbiter_node.imu_health import ImuHealth, ImuHealthLimits
+from multicam_ego_motion.imu.imu_buffer import ImuBuffer
+from multicam_ego_motion.imu.imu_health import ImuHealth, ImuHealthLimits
 from multicam_ego_motion.scenarios.imu import (IMU_FAULTS, IMU_FRAME, IMU_ROTATION, SATURATED_RANGE,
                                               WRONG_FRAME, publish, simulate_imu)
 from multicam_ego_motion.scenarios.trajectories import SCENARIOS

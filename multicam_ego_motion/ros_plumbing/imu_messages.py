@@ -1,5 +1,5 @@
 """sensor_msgs/Imu, as its subscription's CDR bytes -> the gyro's and the accelerometer's sample
-as the fusion core takes it (arbiter_node/imu_buffer). Read field by field (cdr_stream): 200
+as the fusion core takes it (multicam_ego_motion/imu/imu_buffer). Read field by field (cdr_stream): 200
 samples a second."""
 from dataclasses import dataclass
 from typing import Tuple

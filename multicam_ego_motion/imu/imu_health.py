@@ -29,7 +29,7 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 
-from arbiter_node.imu_buffer import plain_floats
+from multicam_ego_motion.imu.imu_buffer import plain_floats
 
 AXES = 'xyz'
 
