@@ -46,6 +46,7 @@ class SequentialResult:
     frame_cpu_ms: List[float] = field(default_factory=list)
     stage_ms: Dict[str, List[float]] = field(default_factory=lambda: defaultdict(list))
     imu_cpu_ms: float = 0.0      # process CPU of reading the IMU's samples (their bytes) into the fusion, all of them
+    imu_samples: int = 0         # how many
     gyro_bias: List[object] = field(default_factory=list)   # the fusion's estimate per frame (None without a gyro)
     gyro_bias_fixes: int = 0     # of them measured from the tracks (general_fusion gyro_bias_from_tracks)
     bearing_messages: int = 0    # the quarters' track messages a graph would send (bearings topics)
@@ -205,6 +206,7 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
             if steer is not None:
                 steer.add(sample.stamp_ns, sample.frame_id, sample.gyro)
             result.imu_cpu_ms += (time.process_time() - c0) * 1e3
+            result.imu_samples += 1
             continue
         if topic in info_topic:
             cam = info_topic[topic]

@@ -6,8 +6,10 @@ the default bag's, byte for byte (generate --imu-rate).
 The estimation's CPU (the sequential pipeline's frame_cpu_ms: quarters, fusion, feedback), and
 with the IMU also what a graph's general arbiter spends on its samples: reading each from its
 bytes (wire_types, as its raw subscription takes them) into the fusion (ImuBuffer, ImuHealth:
-the pipeline's imu_cpu_ms); and the quarters' track messages, which a rig with an IMU sends for
-the gyro's bias (written and read: timed here on a message of the run's mean size). Not
+the pipeline's imu_cpu_ms, which holds the quarters' GyroSteer too); each worker that hosts
+quarters reading every sample as a typed sensor_msgs/Imu for their steering (timed here per
+message, times GRAPH_WORKERS); and the quarters' track messages, which a rig with an IMU sends
+for the gyro's bias (written and read: timed here on a message of the run's mean size). Not
 reading the bag: a robot's IMU comes over DDS.
 """
 from dataclasses import dataclass
@@ -19,6 +21,7 @@ from multicam_ego_motion.bench.accuracy_matrix import ensure_bag
 IMU_RATE_HZ = 200.0
 ROUNDS = 3
 TARGET_PCT = 5.0        # issue: CPU per frame with the IMU at most 5 % more
+GRAPH_WORKERS = 2       # worker processes hosting quarters, each reading the IMU once (2 cores)
 
 
 @dataclass
@@ -38,7 +41,7 @@ class ImuCost:
     def lines(self) -> List[str]:
         a = ', '.join(f'{v:.1f}' for v in self.without_ms)
         b = ', '.join(f'{v:.1f}' for v in self.with_ms)
-        return ['| IMU (200 Hz gyro, default bag\'s scene), estimation CPU per frame (with the IMU: its samples read into the fusion, the quarters\' track messages) '
+        return ['| IMU (200 Hz gyro, default bag\'s scene), estimation CPU per frame (with the IMU: its samples read into the fusion and by each worker\'s quarters, the quarters\' track messages) '
                 '| without [ms] | with [ms] | more |', '|---|---|---|---:|',
                 f'| {len(self.with_ms)} rounds, interleaved | {a} | {b} | {self.extra_pct:+.1f} % |']
 
@@ -57,6 +60,23 @@ def bearings_message_ms(points: int, repeats: int = 1000) -> float:
         c0 = time.process_time()
         for _ in range(repeats):
             bearings_from_cdr(bearings_to_cdr(1, 'cam', ids, xy, sigma))
+        best = min(best, (time.process_time() - c0) / repeats * 1e3)
+    return best
+
+
+def imu_message_ms(repeats: int = 2000) -> float:
+    """CPU ms to read one sensor_msgs/Imu from its bytes as rclpy hands it to a worker's
+    quarters (the typed message), fastest of 3."""
+    import time
+
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import Imu
+    data = serialize_message(Imu())
+    best = float('inf')
+    for _ in range(3):
+        c0 = time.process_time()
+        for _ in range(repeats):
+            deserialize_message(data, Imu)
         best = min(best, (time.process_time() - c0) / repeats * 1e3)
     return best
 
@@ -84,6 +104,8 @@ def imu_cost(bags_folder: Path, params, rounds: int = ROUNDS) -> ImuCost:
                 res = run_sequential(bag, rig, qp, dict(fp, use_imu=use_imu), camera_fusion_params=cp)
                 n = max(len(res.fused), 1)
                 messages_ms = 0.0
+                if use_imu and qp.get('gyro_steer', True):
+                    messages_ms += res.imu_samples * GRAPH_WORKERS * imu_message_ms()
                 if res.bearing_messages:
                     points = round(res.bearing_points / res.bearing_messages)
                     messages_ms = res.bearing_messages * bearings_message_ms(points)
