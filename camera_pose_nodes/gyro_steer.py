@@ -13,7 +13,7 @@ One per process and IMU topic may serve every quarter: each sample is taken once
 the other quarters hand in are refused as not newer).
 """
 from collections import deque
-from typing import Deque, Optional, Tuple
+from typing import Deque, Dict, Optional, Tuple
 
 import numpy as np
 
@@ -21,6 +21,7 @@ from multicam_ego_motion.imu.imu_buffer import ImuBuffer
 
 KEEP_S = 2.0          # samples kept: a frame step and the wait for the arbiter's word
 WORDS_KEPT = 8        # the arbiter's newest words (a frame or two back is the one used)
+RATES_KEPT = 8        # steps remembered (cameras at their own stamps ask for several)
 
 
 class GyroSteer:
@@ -29,6 +30,8 @@ class GyroSteer:
         self.buffer = ImuBuffer(R_base_imu, max_gap_s=max_gap_s, keep_s=KEEP_S)
         # the arbiter's words, (frame stamp, bias in base_link (rad/s) or None: do not use)
         self.words: Deque[Tuple[int, Optional[np.ndarray]]] = deque(maxlen=WORDS_KEPT)
+        # rate()'s latest results: every quarter of a rig asks for the same steps
+        self._rates: Dict[Tuple[int, int], np.ndarray] = {}
 
     @classmethod
     def for_rig(cls, rig) -> Optional['GyroSteer']:
@@ -54,6 +57,7 @@ class GyroSteer:
         word = (stamp_ns, b if b is not None and np.all(np.isfinite(b)) else None)
         if self.words and self.words[-1][0] == stamp_ns:
             self.words[-1] = word
+            self._rates.clear()           # (a step may have used the word replaced)
         else:
             self.words.append(word)
 
@@ -76,8 +80,18 @@ class GyroSteer:
         that fused pose may or may not have come (prefetch). The words before its last frame
         were all there when it processed that frame, so the flow is the same either way, and
         the same as the sequential pipeline's."""
-        bias = next((b for s, b in reversed(self.words) if s < int(t0_ns)), None)
+        key = (int(t0_ns), int(t1_ns))
+        if key in self._rates:
+            return self._rates[key]
+        bias = next((b for s, b in reversed(self.words) if s < key[0]), None)
         if bias is None:
             return None
-        m = self.buffer.mean_rate(int(t0_ns), int(t1_ns))
-        return None if m is None else m[0] - bias
+        m = self.buffer.mean_rate(*key)
+        if m is None:
+            return None
+        rate = m[0] - bias
+        rate.flags.writeable = False      # shared by the quarters that asked
+        self._rates[key] = rate
+        while len(self._rates) > RATES_KEPT:
+            del self._rates[next(iter(self._rates))]
+        return rate
