@@ -21,8 +21,6 @@ import numpy as np
 from arbiter_node.body_ekf import STANDARD_GRAVITY, BodyEKF, BodyEkfParams
 from arbiter_node.camera_median import median_filter
 from arbiter_node.covariance import condition_covariance
-from multicam_ego_motion.imu.imu_buffer import ImuBuffer
-from multicam_ego_motion.imu.imu_health import ImuHealth, ImuHealthLimits
 from arbiter_node.quarter_fusion import CHI2_6DOF_999, information_fusion
 from arbiter_node.time_shift import shift_pose
 from arbiter_node.rig_motion_fit import fit_rig_motion, refine_rig_motion
@@ -33,6 +31,8 @@ from camera_pose_nodes.map_scale import scale_positions
 from camera_pose_nodes.pose_estimate import PoseEstimate
 from multicam_ego_motion.geometry import se3
 from multicam_ego_motion.geometry.rig import Rig
+from multicam_ego_motion.imu.imu_buffer import ImuBuffer
+from multicam_ego_motion.imu.imu_health import ImuHealth, ImuHealthLimits
 
 FUSED_STATES = ('initializing', 'tracking', 'lost', 'dead_reckoning')
 

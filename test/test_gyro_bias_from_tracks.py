@@ -11,7 +11,6 @@ import pytest
 
 from arbiter_node import rig_motion_fit
 from arbiter_node.body_ekf import BodyEKF
-from multicam_ego_motion.imu.imu_buffer import ImuBuffer
 from arbiter_node.rig_motion_fit import fit_rig_motion, refine_rig_motion
 from camera_pose_nodes.kernel import ENV as KERNEL_ENV
 from multicam_ego_motion.ablation import score
@@ -19,6 +18,7 @@ from multicam_ego_motion.bag.rosbag2_reader import Rosbag2Reader
 from multicam_ego_motion.bench.accuracy_matrix import ensure_bag
 from multicam_ego_motion.evaluation.trajectory_io import load_trajectory
 from multicam_ego_motion.geometry import se3
+from multicam_ego_motion.imu.imu_buffer import ImuBuffer
 from multicam_ego_motion.params_file import fusion_params_from, quarter_params_from
 from multicam_ego_motion.replay import resolve_rig
 from multicam_ego_motion.ros_plumbing.package_share import default_params

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from arbiter_node.body_ekf import STANDARD_GRAVITY, BodyEKF
-from multicam_ego_motion.imu.imu_buffer import ImuBuffer
 from multicam_ego_motion.geometry import se3
+from multicam_ego_motion.imu.imu_buffer import ImuBuffer
 from multicam_ego_motion.scenarios.imu import IMU_ROTATION, IMU_TRANSLATION, NOISELESS, ImuNoise, simulate_imu
 from multicam_ego_motion.scenarios.trajectories import DENSE_DT, integrate_unicycle, smooth_step
 
