@@ -5,12 +5,10 @@ reversal by tens of pixels and loses its map."""
 import numpy as np
 import pytest
 
-from camera_pose_nodes.camera_model import CameraIntrinsics
 from camera_pose_nodes.gyro_steer import GyroSteer
 from camera_pose_nodes.quarter_estimator import QuarterEstimator, QuarterParams
 from multicam_ego_motion.geometry import se3
-from multicam_ego_motion.geometry.rig import paper_rig
-from test_quarter_estimator import F, H, W, render, wall_texture
+from test_quarter_estimator import rendered_front
 
 RATE = 10.0
 IMU_RATE = 200.0
@@ -63,12 +61,7 @@ def test_the_gyro_steers_only_on_the_arbiters_word_and_less_its_bias():
 
 @pytest.fixture(scope='module')
 def swing():
-    cam = paper_rig().camera('front')
-    intr = CameraIntrinsics.pinhole(F, F, W / 2, H / 2, W, H)
-    tex = wall_texture(1)
-    frames = [(int(1e9 * k / RATE), pose(k / RATE)) for k in range(30)]
-    images = [render(tex, intr.K, T @ cam.T_base_cam) for _, T in frames]
-    return cam, intr, frames, images
+    return rendered_front(pose, RATE, 30, seed=1)
 
 
 def run(swing, gyro):

@@ -42,14 +42,20 @@ def true_pose(t):
     return se3.make_T(se3.rotvec_to_R([0, 0, 0.1 * t]), [0.2 * t, 0.5 * t, 0.0])
 
 
-@pytest.fixture(scope='module')
-def scene():
+def rendered_front(pose, rate, n, seed=0):
+    """The paper rig's front camera, its intrinsics, n (stamp, body pose) at `rate` Hz on
+    `pose(t)`, and the wall as that camera sees it from each."""
     cam = paper_rig().camera('front')
     intr = CameraIntrinsics.pinhole(F, F, W / 2, H / 2, W, H)
-    tex = wall_texture()
-    frames = [(int(1e9 * k / RATE), true_pose(k / RATE)) for k in range(60)]
+    tex = wall_texture(seed)
+    frames = [(int(1e9 * k / rate), pose(k / rate)) for k in range(n)]
     images = [render(tex, intr.K, T @ cam.T_base_cam) for _, T in frames]
     return cam, intr, frames, images
+
+
+@pytest.fixture(scope='module')
+def scene():
+    return rendered_front(true_pose, RATE, 60)
 
 
 PARAMS = QuarterParams(parallax_deg=1.5)
@@ -222,12 +228,7 @@ def swing_pose(t):
 
 @pytest.fixture(scope='module')
 def swing():
-    cam = paper_rig().camera('front')
-    intr = CameraIntrinsics.pinhole(F, F, W / 2, H / 2, W, H)
-    tex = wall_texture(1)
-    frames = [(int(1e9 * k / RATE), swing_pose(k / RATE)) for k in range(40)]
-    images = [render(tex, intr.K, T @ cam.T_base_cam) for _, T in frames]
-    return cam, intr, frames, images
+    return rendered_front(swing_pose, RATE, 40, seed=1)
 
 
 def test_tracking_steered_by_the_rotation_is_accurate_and_the_same_prefetched(swing):
