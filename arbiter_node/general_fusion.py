@@ -79,7 +79,8 @@ PARAMETERS = {
     'imu_gravity_std_rad': (0.003, "imu_gravity: the up direction's std beyond the accelerometer's white noise and its bias (a state) (rad; times g in m/s^2): the accelerations the filter does not see (spin_then_drive without wheel or floor, seeds 7-9, ATE / final drift summed: 4.89 / 8.50 % without imu_gravity, 5.44 / 7.07 at 0.01, 4.25 / 7.15 at 0.003)", 1e-6, 1.0),
     'imu_gravity_max_accel': (0.5, "imu_gravity: a step whose body acceleration (the filter's) or whose reading's magnitude off gravity is more than this does not measure up (m/s^2)", 0.0, 100.0),
     'imu_gravity_gate_chi2': (11.34, "imu_gravity: chi-square (3 dof, 99 %) gate of the up direction against the filter's", 1.0, 1e6),
-    'gyro_bias_settle_s': (3.0, 'the cameras tell the gyro bias (their tracks, gyro_bias_from_tracks, else their fixes) only from this long after the first fix (while the maps form the fixes are off by tenths of a degree between frames, which the filter took for a 4 mrad/s bias)', 0.0, 600.0),
+    'gyro_bias_tracks_settle_s': (0.0, 'gyro_bias_from_tracks: the tracks tell the gyro bias from this long after the first fix (their fit of the rig\'s rotation needs no map, only the tracks of two frames: from the start, the bias is known before the first turn)', 0.0, 600.0),
+    'gyro_bias_settle_s': (3.0, 'the cameras\' fixes tell the gyro bias (without gyro_bias_from_tracks) and test the gyro (imu_health) only from this long after the first fix (while the maps form the fixes are off by tenths of a degree between frames, which the filter took for a 4 mrad/s bias)', 0.0, 600.0),
     'gyro_bias_from_tracks': (True, "with the gyro: every frame, the rig's rotation between the two previous frames fitted to all cameras' tracks at once (rig_motion_fit.refine_rig_motion, from the gyro's rotation) measures the gyro bias directly, as the gyro's mean rate less that rotation's, and the fused poses no longer tell it (a spin's fixes, off by tenths of a degree, pulled it the wrong way: docs/fusion.md)", None, None),
     'gyro_bias_tracks_min_travel': (1.0, "gyro_bias_from_tracks: only while the body's speed is at least this times its turn rate times the longest camera lever arm (m/s per m/s): in a spin in place every camera moves sideways, along its epipolar lines, where a yaw error does not show", 0.0, 100.0),
     'gyro_bias_tracks_inflation': (2.0, "gyro_bias_from_tracks: the fit's rotation covariance times this (a margin: on the generator's scenes the fits' rotations are within 0.05 mrad/s of the truth after a spin, where they predict 0.3)", 1.0, 1e4),
@@ -244,10 +245,11 @@ class GeneralFusion:
         self.rejections += 1
         return self.rejections >= self.params['max_consecutive_rejections']
 
-    def _cameras_settled(self, stamp_ns: int) -> bool:
-        """Whether the cameras' fixes may tell the gyro bias (gyro_bias_settle_s)."""
+    def _cameras_settled(self, stamp_ns: int, key: str = 'gyro_bias_settle_s') -> bool:
+        """Whether the cameras' fixes (or, key gyro_bias_tracks_settle_s, their tracks) may tell
+        the gyro bias."""
         return (self.first_fix_ns is not None
-                and (stamp_ns - self.first_fix_ns) * 1e-9 >= self.params['gyro_bias_settle_s'])
+                and (stamp_ns - self.first_fix_ns) * 1e-9 >= self.params[key])
 
     def _predict(self, t0_ns: int, t1_ns: int):
         """The EKF from t0 to t1, its rotation following the gyro where its samples cover
@@ -685,7 +687,8 @@ class GeneralFusion:
         +1.5 mrad/s where the truth is -3.7). Once the cameras have settled
         (gyro_bias_settle_s)."""
         p = self.params
-        if (not (self.gyro_used and self._bias_from_tracks() and self._cameras_settled(stamp_ns))
+        if (not (self.gyro_used and self._bias_from_tracks()
+                 and self._cameras_settled(stamp_ns, 'gyro_bias_tracks_settle_s'))
                 or len(self.frames) < 2):
             return False
         (s0, c0), (s1, c1) = self.frames
