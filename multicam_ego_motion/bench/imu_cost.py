@@ -108,7 +108,7 @@ def imu_cost(bags_folder: Path, params, rounds: int = ROUNDS) -> ImuCost:
                     messages_ms += res.imu_samples * GRAPH_WORKERS * imu_message_ms()
                 if res.bearing_messages:
                     points = round(res.bearing_points / res.bearing_messages)
-                    messages_ms = res.bearing_messages * bearings_message_ms(points)
+                    messages_ms += res.bearing_messages * bearings_message_ms(points)
                 into.append((sum(res.frame_cpu_ms) + res.imu_cpu_ms + messages_ms) / n)
     finally:
         cv2.setNumThreads(threads)
