@@ -9,8 +9,9 @@ arbiter's (its body EKF estimates the bias, imu_health judges the samples): the 
 says both after each frame (`set_bias`), and without a finite bias the gyro is not used
 here either, so a bad IMU steers at most the frame or two before the arbiter says it.
 
-One per process and IMU topic may serve every quarter: each sample is taken once (the copies
-the other quarters hand in are refused as not newer).
+One per process and IMU topic may serve every quarter: each sample is taken once (the
+quarters check `is_new` on the sample's stamp before reading the rest of its bytes, so a
+process reads each sample once).
 """
 from collections import deque
 from typing import Deque, Dict, Optional, Tuple
@@ -46,6 +47,12 @@ class GyroSteer:
         if frame_id is not None and frame_id != self.frame_id:
             return f'sample in frame {frame_id!r}, the rig\'s IMU is {self.frame_id!r}'
         return self.buffer.add(int(stamp_ns), gyro)
+
+    def is_new(self, stamp_ns: int) -> bool:
+        """A sample at stamp_ns would be taken as to its time: after the newest kept (the
+        quarters that share this steer skip, before reading it, a sample one of them gave)."""
+        stamps = self.buffer.stamps
+        return not stamps or stamp_ns > stamps[-1]
 
     def set_bias(self, stamp_ns: int, bias):
         """The arbiter's word after its frame `stamp_ns`: the gyro's bias (base_link, rad/s),

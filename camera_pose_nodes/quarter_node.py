@@ -39,6 +39,7 @@ from camera_pose_nodes.quarter_estimator import PARAMETERS, QuarterEstimator, Qu
 from multicam_ego_motion.ros_plumbing import diagnostics
 from multicam_ego_motion.ros_plumbing.bearing_messages import bearings_to_cdr
 from multicam_ego_motion.errors import UserError
+from multicam_ego_motion.ros_plumbing.imu_messages import imu_gyro_from_cdr, imu_stamp_from_cdr
 from multicam_ego_motion.ros_plumbing.node_main import spin_node
 from multicam_ego_motion.ros_plumbing.node_parameters import declare_from_table
 from multicam_ego_motion.ros_plumbing.pose_messages import estimate_to_msg, msg_to_estimate, stamp_to_ns
@@ -123,6 +124,7 @@ class QuarterNode(Node):
         self.gyro = (shared_gyro_steer(rig) if p['use_imu'] and rig.imu is not None
                      and self.params.gyro_steer else None)
         self.imu_wait_s = p['imu_wait_s']
+        self.raw_inputs = set()         # inputs taken as bytes (the IMU's samples)
         self.waits_for_gyro = False     # an image waits for the gyro's samples (on_imu drains)
         self.quarter = int(p['quarter'])
         self.source = f'{self.camera.name}/q{self.quarter}'
@@ -175,15 +177,16 @@ class QuarterNode(Node):
             # (the bias before the fused pose: when both wait, the executor takes them in
             # creation order, and the next frame steers by the bias of the frame before)
             self.inputs = {**{k: v for k, v in self.inputs.items() if k != p['fused_pose_topic']},
-                           rig.imu.topic: (Imu, imu_qos(p['imu_qos']), self.on_imu),
+                           rig.imu.topic: (Imu, imu_qos(p['imu_qos']), self.on_imu),   # raw
                            p['gyro_bias_topic']: (Vector3Stamped, LATCHED, self.on_gyro_bias),
                            p['fused_pose_topic']: self.inputs[p['fused_pose_topic']]}
+            self.raw_inputs = {rig.imu.topic}
         if self.partner is not None:
             self.inputs[self.partner.input_topic] = (IMAGE_TYPES[self.partner.transport],
                                                      image_qos(p['image_qos']), self.on_partner_image)
         if not shared_inputs:
             for topic, (msg_type, qos, callback) in self.inputs.items():
-                self.create_subscription(msg_type, topic, callback, qos)
+                self.create_subscription(msg_type, topic, callback, qos, raw=topic in self.raw_inputs)
         self.info_sub = self.create_subscription(CameraInfo, self.camera.camera_info_topic, self.on_info, RELIABLE)
         self.partner_info_sub = (None if self.partner is None else self.create_subscription(
             CameraInfo, self.partner.camera_info_topic, self.on_partner_info, RELIABLE))
@@ -314,10 +317,18 @@ class QuarterNode(Node):
         if self.estimator is not None:
             self.estimator.add_road_normal(stamp_ns, up)
 
-    def on_imu(self, msg: Imu):
-        # (the arbiter says what is wrong with a bad sample; here it is only not used)
-        self.gyro.add(stamp_to_ns(msg.header.stamp), msg.header.frame_id,
-                      (msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z))
+    def on_imu(self, data: bytes):
+        # As bytes (raw subscription): the process's quarters share one GyroSteer, and all but
+        # the first to get a sample see from its stamp alone that it is in. (The arbiter says
+        # what is wrong with a bad sample; here it is only not used.)
+        stamp_ns = imu_stamp_from_cdr(data)
+        if stamp_ns is None or self.gyro.is_new(stamp_ns):
+            try:
+                stamp_ns, frame_id, gyro = imu_gyro_from_cdr(data)
+            except ValueError:
+                pass
+            else:
+                self.gyro.add(stamp_ns, frame_id, gyro)
         if self.waits_for_gyro and self.pending and self.gyro_ready(self.pending[0][1], self.pending[0][0]):
             self.drain()
             self.offer_work_ahead()

@@ -209,7 +209,8 @@ class Worker:
                 def dispatch(msg, topic=topic):
                     for cb in list(self.feeds[topic][1].values()):
                         cb(msg)
-                sub = self.node.create_subscription(msg_type, topic, dispatch, qos)
+                sub = self.node.create_subscription(msg_type, topic, dispatch, qos,
+                                                    raw=topic in getattr(node, 'raw_inputs', ()))
                 strip_event_handlers(self.node)
                 self.feeds[topic] = (sub, {})
             self.feeds[topic][1][key] = callback

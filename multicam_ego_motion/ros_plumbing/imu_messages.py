@@ -2,7 +2,8 @@
 as the fusion core takes it (multicam_ego_motion/imu/imu_buffer). Read field by field (cdr_stream): 200
 samples a second."""
 from dataclasses import dataclass
-from typing import Tuple
+import struct
+from typing import Optional, Tuple
 
 import numpy as np
 
@@ -36,3 +37,29 @@ def imu_sample_from_cdr(data) -> ImuSample:
         raise ValueError(f'{len(data)} bytes that do not read as {IMU_TYPE} ({type(e).__name__}: {e})') from None
     return ImuSample(stamp_ns, frame_id, v[13:16], np.array(v[16:25]).reshape(3, 3),
                      v[25:28], np.array(v[28:37]).reshape(3, 3))
+
+
+_STAMP = {0: struct.Struct('>iI'), 1: struct.Struct('<iI')}     # by the encapsulation's byte order
+
+
+def imu_stamp_from_cdr(data) -> Optional[int]:
+    """The stamp (ns) of a serialized sensor_msgs/Imu, read without the rest (its header's
+    first field): for a reader that already has that sample, from another subscriber of the
+    process. None when the bytes are too short or not CDR."""
+    if len(data) < 12 or data[0] != 0 or data[1] not in (0, 1):
+        return None
+    sec, nanosec = _STAMP[data[1]].unpack_from(data, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
+def imu_gyro_from_cdr(data) -> Tuple[int, str, Tuple[float, float, float]]:
+    """(stamp ns, frame_id, angular velocity in rad/s) of a serialized sensor_msgs/Imu: the
+    gyro alone, as the quarters steer by it; ValueError naming the problem."""
+    try:
+        r = CdrReader(data)
+        stamp_ns, frame_id = r.stamp_and_frame()
+        # the whole message's doubles read (a short message is refused); the gyro at 13-15
+        v = r.unpack('37d', 8)
+    except Exception as e:  # struct.error, IndexError, UnicodeDecodeError, ValueError
+        raise ValueError(f'{len(data)} bytes that do not read as {IMU_TYPE} ({type(e).__name__}: {e})') from None
+    return stamp_ns, frame_id, v[13:16]
