@@ -85,6 +85,8 @@ PARAMETERS = {
     'gyro_bias_tracks_min_travel': (1.0, "gyro_bias_from_tracks: only while the body's speed is at least this times its turn rate times the longest camera lever arm (m/s per m/s): in a spin in place every camera moves sideways, along its epipolar lines, where a yaw error does not show", 0.0, 100.0),
     'gyro_bias_tracks_inflation': (2.0, "gyro_bias_from_tracks: the fit's rotation covariance times this (a margin: on the generator's scenes the fits' rotations are within 0.05 mrad/s of the truth after a spin, where they predict 0.3)", 1.0, 1e4),
     'gyro_bias_tracks_gate_chi2': (11.34, "gyro_bias_from_tracks: chi-square (3 dof, 99 %) gate of that bias measurement against the filter's bias", 1.0, 1e6),
+    'gyro_bias_tracks_settled_std': (5e-4, "gyro_bias_from_tracks: once the filter's gyro bias std (its largest axis, rad/s) is below this, the bias is measured every gyro_bias_tracks_settled_every frames only (it walks slowly: on the generator's scenes its std settles at 0.2-0.26 mrad/s within 2 s of the first fit); 0: every frame", 0.0, 1.0),
+    'gyro_bias_tracks_settled_every': (2, 'gyro_bias_from_tracks: with the bias settled (gyro_bias_tracks_settled_std), one frame in this many measures it', 1, 100),
     'planar_motion': (True, 'the base moves on the rig\'s level floor (rig floor_z, not with floor_level false; robot_localization calls it two_d_mode): every frame measures its vz, wx, wy as 0', None, None),
     'planar_twist_std': (1e-3, 'std of that planar-motion measurement of vz (m/s), wx and wy (rad/s)', 1e-6, 10.0),
     'wheel_gate_chi2': (1e3, 'chi-square gate of the wheel twist against the EKF twist (slip detection)', 1.0, 1e9),
@@ -187,6 +189,7 @@ class GeneralFusion:
             if self.imu is not None else None)
         self.gyro_used = False         # this frame step follows the gyro (imu_health says it may)
         self.bias_fixes = 0            # gyro bias measurements from the tracks used (diagnostics)
+        self._bias_frames_skipped = 0  # frames since the last bias fit, while the bias is settled
         self.gravity_fixes = 0         # frame steps whose accelerometer measured up (diagnostics)
         self._twist_before: Optional[Tuple[int, np.ndarray]] = None   # (stamp, v) at the last step
         self.last_stamp_ns: Optional[int] = None
@@ -691,6 +694,10 @@ class GeneralFusion:
                  and self._cameras_settled(stamp_ns, 'gyro_bias_tracks_settle_s'))
                 or len(self.frames) < 2):
             return False
+        if self._bias_settled() and self._bias_frames_skipped + 1 < p['gyro_bias_tracks_settled_every']:
+            self._bias_frames_skipped += 1
+            return False
+        self._bias_frames_skipped = 0
         (s0, c0), (s1, c1) = self.frames
         dt = (s1 - s0) * 1e-9
         gyro = self.imu.mean_rate(s0, s1) if dt > 0.0 else None
@@ -717,6 +724,12 @@ class GeneralFusion:
         used, _ = self.ekf.update_gyro_bias(bias, cov, p['gyro_bias_tracks_gate_chi2'])
         self.bias_fixes += int(used)
         return used
+
+    def _bias_settled(self) -> bool:
+        """The filter's gyro bias is known to gyro_bias_tracks_settled_std (every axis)."""
+        C = self.ekf.gyro_bias_covariance
+        limit = self.params['gyro_bias_tracks_settled_std']
+        return C is not None and limit > 0.0 and float(np.max(np.diag(C))) < limit * limit
 
     @property
     def map_scale_command(self):
