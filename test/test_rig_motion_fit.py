@@ -75,6 +75,16 @@ def test_too_few_cameras_or_tracks_are_named():
     assert not fit_rig_motion(R, np.zeros(3), cams).ok
 
 
+def test_bearings_message_bytes_are_rosbags_serializers():
+    from multicam_ego_motion.ros_plumbing import bearing_messages
+    rng = np.random.default_rng(3)
+    for frame_id in ('', 'c', 'cam', 'rear_left_optical'):
+        for n in (0, 1, 3, 40):
+            args = (1_700_000_000_000_000_001 + n, frame_id, rng.integers(0, 2 ** 33, n),
+                    rng.normal(0, 0.5, (n, 2)), rng.random(n))
+            assert bearing_messages.bearings_to_cdr(*args) == bearing_messages._bearings_to_cdr_rosbags(*args)
+
+
 def test_bearings_go_through_their_message_unchanged_and_a_wrong_layout_is_named():
     from rclpy.serialization import deserialize_message, serialize_message
     from sensor_msgs.msg import PointCloud2, PointField
