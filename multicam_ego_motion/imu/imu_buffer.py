@@ -34,6 +34,8 @@ MEANS_KEPT = 4                 # mean_rate's results remembered (the latest step
 def plain_floats(values) -> tuple:
     """A sample's numbers (a sequence, or an array of any shape) as a flat tuple of floats:
     200 samples a second, where a numpy call per 3 or 9 numbers costs more than reading them."""
+    if type(values) is tuple and all(type(v) is float for v in values):
+        return values
     if isinstance(values, np.ndarray):
         return tuple(values.astype(float, copy=False).ravel().tolist())
     return tuple(map(float, values))
@@ -69,36 +71,39 @@ class ImuBuffer:
         g = plain_floats(gyro)
         if len(g) != 3:
             raise ValueError(f'gyro sample: 3 values expected, got {len(g)}')
-        if not all(math.isfinite(v) for v in g):
+        isfinite = math.isfinite
+        if not (isfinite(g[0]) and isfinite(g[1]) and isfinite(g[2])):
             return f'gyro sample at {stamp_ns / 1e9:.6f} s is not finite'
-        if self.stamps and stamp_ns <= self.stamps[-1]:
+        stamps = self.stamps
+        if stamps and stamp_ns <= stamps[-1]:
             return (f'gyro sample at {stamp_ns / 1e9:.6f} s is not after the newest '
-                    f'({self.stamps[-1] / 1e9:.6f} s): out of order or repeated')
+                    f'({stamps[-1] / 1e9:.6f} s): out of order or repeated')
         var = self.gyro_variance
         if gyro_covariance is not None:
             c = plain_floats(gyro_covariance)
             # REP-145: all zeros is "unknown", -1 in the first element "not measured"
-            if len(c) == 9 and all(math.isfinite(v) for v in c) and c[0] > 0:
+            if len(c) == 9 and c[0] > 0 and all(map(isfinite, c)):
                 var = max(c[0], c[4], c[8])
         a, a_var = None, self.accel_variance
         if accel is not None:
             a = plain_floats(accel)
-            if len(a) != 3 or not all(math.isfinite(v) for v in a):
+            if len(a) != 3 or not (isfinite(a[0]) and isfinite(a[1]) and isfinite(a[2])):
                 a = None
             if accel_covariance is not None:
                 c = plain_floats(accel_covariance)
                 if len(c) == 9 and c[0] == -1.0:
                     a = None                     # REP-145: not measured
-                elif len(c) == 9 and all(math.isfinite(v) for v in c) and c[0] > 0:
+                elif len(c) == 9 and c[0] > 0 and all(map(isfinite, c)):
                     a_var = max(c[0], c[4], c[8])
-        self.stamps.append(int(stamp_ns))
+        stamp_ns = int(stamp_ns)
+        stamps.append(stamp_ns)
         self.rates.append(g)
         self.variances.append(var)
         self.accels.append(a)
         self.accel_variances.append(a_var)
-        if self.stamps[0] <= int(stamp_ns) - self.keep_ns:
-            cut = bisect_right(self.stamps, int(stamp_ns) - self.keep_ns)
-            del (self.stamps[:cut], self.rates[:cut], self.variances[:cut], self.accels[:cut],
+        if stamps[0] <= stamp_ns - self.keep_ns:
+            cut = bisect_right(stamps, stamp_ns - self.keep_ns)
+            del (stamps[:cut], self.rates[:cut], self.variances[:cut], self.accels[:cut],
                  self.accel_variances[:cut])
         return None
 
