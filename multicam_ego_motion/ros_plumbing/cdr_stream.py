@@ -1,8 +1,8 @@
 """Plain CDR (XCDR1, what ROS 2's rmw puts on the wire) read field by field, for a fixed-layout
 message that comes hundreds of times a second: the IMU's (imu_messages, 200 a second), where
 struct unpacks at the fields' offsets cost 4 us a message and the generic deserializer
-(wire_types, rosbags) 17. (The quarters' track messages gain nothing from it: their cost is the
-numpy arrays, not the parsing.) Alignment is relative to the payload, after the 4-byte
+(wire_types, rosbags) 17. (The quarters' track messages, of one fixed layout too, are put
+together and read by bearing_messages itself.) Alignment is relative to the payload, after the 4-byte
 encapsulation header; both byte orders are read."""
 import struct
 from typing import Tuple

@@ -1,7 +1,8 @@
 """The ROS 2 Jazzy message types as rosbags builds, writes and reads them, for the topics that
 come many times a frame: the quarters' track messages (one per quarter and frame) and the IMU's
 samples (200 a second; read by cdr_stream, written here). Their subscriptions take the CDR bytes
-(rclpy `raw=True`), their publishers send bytes rosbags wrote: rclpy's message objects (a
+(rclpy `raw=True`), their publishers send bytes rosbags wrote (or, for the track messages,
+the same bytes put together by bearing_messages): rclpy's message objects (a
 dozen Python objects a message, made and read field by field) cost 15 us a message, rosbags'
 5-8. The bytes on the wire are the standard CDR encoding of the same type: any subscriber,
 viewer or recorder takes them as usual. Generated bags (bag/rig_bag_writer) are written with the
