@@ -161,7 +161,8 @@ def test_the_tracks_tell_the_bias_the_fused_poses_got_wrong(spin_bag):
     assert abs(truth[2]) > 0.002               # this seed's gyro: -3.5 mrad/s about z
     res, m = run(spin_bag, rig, gyro_steer=False)
     poses_only, m_poses = run(spin_bag, rig, gyro_steer=False, gyro_bias_from_tracks=False)
-    assert len(res.fused) == 161 and res.gyro_bias_fixes > 60
+    # (every frame until the bias has settled, then one in gyro_bias_tracks_settled_every: 52)
+    assert len(res.fused) == 161 and res.gyro_bias_fixes > 40
     t0 = res.fused[0].stamp_ns
     drive = [i for i, f in enumerate(res.fused) if (f.stamp_ns - t0) * 1e-9 > SPIN_ENDS_S + 2.0]
     # measured: within 0.65 mrad/s all through the drive; the fused poses' alone 1.4-3.3 off
