@@ -24,17 +24,22 @@ class ImuSample:
     accel_covariance: np.ndarray = None   # as gyro_covariance (-1 first: the driver has no accelerometer)
 
 
-def imu_sample_from_cdr(data) -> ImuSample:
-    """The gyro's and accelerometer's sample of one serialized sensor_msgs/Imu; ValueError
-    naming the problem."""
+def _read(data) -> Tuple[int, str, tuple]:
+    """(stamp ns, frame_id, the message's 37 doubles); ValueError naming the problem."""
     try:
         r = CdrReader(data)
         stamp_ns, frame_id = r.stamp_and_frame()
         # orientation (4), its covariance (9), angular_velocity (3), its covariance (9),
         # linear_acceleration (3), its covariance (9): read whole, so a short message is refused
-        v = r.unpack('37d', 8)
+        return stamp_ns, frame_id, r.unpack('37d', 8)
     except Exception as e:  # struct.error, IndexError, UnicodeDecodeError, ValueError
         raise ValueError(f'{len(data)} bytes that do not read as {IMU_TYPE} ({type(e).__name__}: {e})') from None
+
+
+def imu_sample_from_cdr(data) -> ImuSample:
+    """The gyro's and accelerometer's sample of one serialized sensor_msgs/Imu; ValueError
+    naming the problem."""
+    stamp_ns, frame_id, v = _read(data)
     return ImuSample(stamp_ns, frame_id, v[13:16], np.array(v[16:25]).reshape(3, 3),
                      v[25:28], np.array(v[28:37]).reshape(3, 3))
 
@@ -55,11 +60,5 @@ def imu_stamp_from_cdr(data) -> Optional[int]:
 def imu_gyro_from_cdr(data) -> Tuple[int, str, Tuple[float, float, float]]:
     """(stamp ns, frame_id, angular velocity in rad/s) of a serialized sensor_msgs/Imu: the
     gyro alone, as the quarters steer by it; ValueError naming the problem."""
-    try:
-        r = CdrReader(data)
-        stamp_ns, frame_id = r.stamp_and_frame()
-        # the whole message's doubles read (a short message is refused); the gyro at 13-15
-        v = r.unpack('37d', 8)
-    except Exception as e:  # struct.error, IndexError, UnicodeDecodeError, ValueError
-        raise ValueError(f'{len(data)} bytes that do not read as {IMU_TYPE} ({type(e).__name__}: {e})') from None
+    stamp_ns, frame_id, v = _read(data)
     return stamp_ns, frame_id, v[13:16]
