@@ -71,6 +71,7 @@ class BodyEKF:
             self.kf.P[BIAS, BIAS] = np.eye(3) * self.params.gyro_bias_std ** 2
             self.kf.P[ACCEL_BIAS, ACCEL_BIAS] = np.eye(3) * self.params.accel_bias_std ** 2
         self.R_nom = np.eye(3)
+        self._clear_clones()
         self.reinitialize(np.eye(4), np.eye(6) * 1e-9)
 
     @property
@@ -100,6 +101,7 @@ class BodyEKF:
             P[12:, 12:] = self.kf.P[12:, 12:]
         self.kf.x = x
         self.kf.P = P
+        self._clear_clones()        # a restart cuts the correlation they lived on
 
     @property
     def T(self) -> np.ndarray:
@@ -131,6 +133,99 @@ class BodyEKF:
     @property
     def gyro_bias_covariance(self) -> Optional[np.ndarray]:
         return self.kf.P[BIAS, BIAS].copy() if self.has_gyro_bias else None
+
+    # ------------------------------------------------------------------ pose clones
+    # Stochastic cloning: poses kept under keys, with their joint covariance (Pcc, 6m x 6m)
+    # and their cross-covariance with the state's error (Pcx, 6m x dim). Every later
+    # measurement corrects them through it (a fixed-lag smoother of those poses), and a
+    # measurement between two of them (a camera's rotation between its frames) corrects the
+    # state.
+    def _clear_clones(self):
+        self.clone_keys = []
+        self.clone_T = []
+        self.Pcc = np.zeros((0, 0))
+        self.Pcx = np.zeros((0, self.dim))
+
+    def clone_pose(self, key) -> None:
+        """Keep the current pose under `key` (replacing one of that key)."""
+        self.drop_clone(key)
+        m = len(self.clone_keys)
+        Pcc = np.zeros((6 * m + 6, 6 * m + 6))
+        Pcc[:6 * m, :6 * m] = self.Pcc
+        Pcc[:6 * m, 6 * m:] = self.Pcx[:, :6]
+        Pcc[6 * m:, :6 * m] = self.Pcx[:, :6].T
+        Pcc[6 * m:, 6 * m:] = self.kf.P[:6, :6]
+        self.Pcc = Pcc
+        self.Pcx = np.vstack([self.Pcx, self.kf.P[:6, :]])
+        self.clone_keys.append(key)
+        self.clone_T.append(self.T)
+
+    def drop_clone(self, key) -> None:
+        if key not in self.clone_keys:
+            return
+        i = self.clone_keys.index(key)
+        keep = np.r_[0:6 * i, 6 * i + 6:6 * len(self.clone_keys)]
+        self.Pcc = self.Pcc[np.ix_(keep, keep)]
+        self.Pcx = self.Pcx[keep]
+        del self.clone_keys[i], self.clone_T[i]
+
+    def cloned_pose(self, key) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+        """(T, 6x6 covariance) of the pose cloned under `key`, as corrected since; None if none."""
+        if key not in self.clone_keys:
+            return None
+        i = self.clone_keys.index(key)
+        sl = slice(6 * i, 6 * i + 6)
+        return self.clone_T[i].copy(), condition_covariance(self.Pcc[sl, sl], max_eig=MAX_VARIANCE)
+
+    def _correct_clones(self, d) -> None:
+        for i in range(len(self.clone_keys)):
+            di = d[6 * i:6 * i + 6]
+            T = self.clone_T[i]
+            self.clone_T[i] = se3.make_T(se3.rotvec_to_R(di[3:6]) @ T[:3, :3], T[:3, 3] + di[:3])
+
+    def _clones_updated(self, P_before, H, S, y):
+        # The clones' gain Pcx H^T S^-1 is the optimal one whatever the state's gain did
+        # (Joseph form), so their cross-covariance follows Pcx (I - K H)^T = Pcx - Kc H P.
+        Kc = np.linalg.solve(S, H @ self.Pcx.T).T
+        self._correct_clones((Kc @ y).reshape(-1))
+        self.Pcc = self.Pcc - Kc @ S @ Kc.T
+        self.Pcx = self.Pcx - Kc @ H @ P_before
+
+    def update_relative_rotation(self, key_a, key_b, R_ab: np.ndarray, cov: np.ndarray,
+                                 gate_chi2: float = float('inf')) -> Tuple[bool, float]:
+        """The body's rotation from clone a to clone b, R_ab in base_link at a (3x3 covariance
+        there): R_b = R_a R_ab. Corrects both clones and, through them, the state."""
+        if key_a not in self.clone_keys or key_b not in self.clone_keys:
+            return False, float('inf')
+        R_ab, cov = np.asarray(R_ab, float), np.asarray(cov, float)
+        if not (np.all(np.isfinite(R_ab)) and np.all(np.isfinite(cov))):
+            return False, float('inf')
+        ia, ib = self.clone_keys.index(key_a), self.clone_keys.index(key_b)
+        Ra, Rb = self.clone_T[ia][:3, :3], self.clone_T[ib][:3, :3]
+        # R_b = exp(e_b) Rb_hat, R_a = exp(e_a) Ra_hat: log(Ra_hat R_ab Rb_hat^T) = e_b - e_a
+        y = se3.R_to_rotvec(Ra @ R_ab @ Rb.T)
+        Rm = condition_covariance(Ra @ cov @ Ra.T, max_eig=MAX_VARIANCE)
+        n, m = self.dim, len(self.clone_keys)
+        P = np.block([[self.kf.P, self.Pcx.T], [self.Pcx, self.Pcc]])
+        H = np.zeros((3, n + 6 * m))
+        H[:, n + 6 * ib + 3:n + 6 * ib + 6] = np.eye(3)
+        H[:, n + 6 * ia + 3:n + 6 * ia + 6] = -np.eye(3)
+        S = H @ P @ H.T + Rm
+        d2 = mahalanobis2(y, S)
+        if not np.isfinite(d2) or d2 > gate_chi2:
+            return False, d2
+        snap = self._snapshot()
+        K = np.linalg.solve(S, H @ P).T
+        dx = K @ y
+        A = np.eye(n + 6 * m) - K @ H
+        P = A @ P @ A.T + K @ Rm @ K.T
+        self.kf.x = self.kf.x + dx[:n].reshape(-1, 1)
+        self.kf.P = P[:n, :n]
+        if not self._finish(snap):
+            return False, d2
+        self._correct_clones(dx[n:])
+        self.Pcx, self.Pcc = P[n:, :n], P[n:, n:]
+        return True, d2
 
     # ------------------------------------------------------------------ internals
     def _snapshot(self):
@@ -209,7 +304,8 @@ class BodyEKF:
         else:
             self.kf.B = np.eye(self.dim)       # (filterpy: x = F x + B u)
             self.kf.predict(u=u)
-        self._finish(snap)
+        if self._finish(snap) and self.clone_keys:
+            self.Pcx = self.Pcx @ F.T
 
     def pose_innovation(self, T_meas: np.ndarray, cov: np.ndarray) -> Tuple[np.ndarray, float]:
         """Innovation (se3 error of T_meas about the estimate) and its squared Mahalanobis distance."""
@@ -327,13 +423,20 @@ class BodyEKF:
         self.kf.x = self.kf.x + K @ y
         A = np.eye(self.dim) - K @ H
         self.kf.P = A @ P @ A.T + K @ Rm @ K.T
-        return self._finish(snap)
+        ok = self._finish(snap)
+        if ok and self.clone_keys:
+            self._clones_updated(P, H, S, y)
+        return ok
 
     def _update(self, z, H, Rm) -> bool:
         snap = self._snapshot()
+        P = self.kf.P
         try:
             self.kf.update(z, lambda x: H, lambda x: H @ x, R=Rm)
         except np.linalg.LinAlgError:
             self._restore(snap)
             return False
-        return self._finish(snap)
+        ok = self._finish(snap)
+        if ok and self.clone_keys:
+            self._clones_updated(P, H, self.kf.S, self.kf.y)
+        return ok

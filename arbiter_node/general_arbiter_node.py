@@ -125,7 +125,8 @@ class GeneralArbiterNode(Node):
         if p['use_wheel_odometry']:
             self.wheel_sub = self.create_subscription(Odometry, p['wheel_odometry_topic'],
                                                       self.on_wheel, RELIABLE)
-        # Without stereo and floor: every quarter's tracks, for the scale (scale_state)
+        # Every quarter's tracks: without stereo and floor for the scale (scale_state), with a
+        # gyro for its bias, from free-running cameras for their rotations
         self.bearing_subs = [] if not self.fusion.wants_bearings() else [
             self.create_subscription(PointCloud2, bearings_topic(n, q),
                                      lambda m, n=n, q=q: self.on_bearings(n, q, m), RELIABLE, raw=True)
@@ -411,6 +412,7 @@ class GeneralArbiterNode(Node):
              'scale_source': fused.scale_fixed_by,
              'scale_relative_std': round(float(fused.scale_relative_std), 6),
              'scale_observations': self.fusion.scale.n_observations,
+             'lone_track_rotations': self.fusion.lone_rotations,   # free-running cameras' own turns
              'rig_fit': self.fusion.scale.fit_summary(),
              'cameras_used': ','.join(fused.cameras_used), 'cameras_missing': ','.join(missing),
              'frame_stride': self.governor.stride, 'frames_kept': f'{self.governor.keep}/{self.governor.stride}',

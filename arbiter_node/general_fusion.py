@@ -46,6 +46,8 @@ PARAMETERS = {
     'median_weighted': (True, 'weight each vote in the median by its precision (1 / RMS std): loose cameras cannot move it', None, None),
     'lone_camera_covariance_scale': (2.0, "free-running cameras: a camera fused alone at its stamp has its covariance times this (no other camera's vote vets it; loop seeds 7-10 at random phases, final drift summed: 1.55 % at 1, 1.19 % at 2, 1.15 % at 3, 1.22 % at 4; synchronised 1.08 %)", 1.0, 100.0),
     'lone_camera_robust_chi2': (4.0, "free-running cameras: a camera fused alone whose innovation's squared Mahalanobis distance d2 (6 dof) exceeds this has its covariance times sqrt(d2 / this), a Huber weight: a lone fix far from the prediction pulls it by a bounded amount, as no other camera's vote out-votes it (loop seeds 7-11 at random phases, ATE / final drift summed, mean of three feature thresholds: 1.46 / 1.66 % without, 1.38 / 1.55 at 4; synchronised 1.20 / 1.36); 1e6: off", 1.0, 1e6),
+    'lone_camera_track_rotation': (True, "free-running cameras: each camera's rotation between its last two frames, fitted to its tracks (rig_motion_fit), measures the body's rotation between the fused poses at those stamps (clones of them in the body EKF): the turn's rate from image measurements alone, where a lone fix and the prediction alone let the rate lag in fast turns", None, None),
+    'lone_track_rotation_cov_scale': (4.0, "lone_camera_track_rotation: the fit's rotation covariance times this", 0.01, 1e6),
     'camera_correlation': (0.0, 'assumed error correlation between cameras (shared fed-back landmarks); inflates the fused covariance by 1+(n-1)rho', 0.0, 1.0),
     'camera_floor_std_m': (0.005, 'added to every camera estimate: position std of the landmark-map error the quarters leave out (m)', 0.0, 10.0),
     'camera_floor_std_rad': (0.002, 'added to every camera estimate: rotation std of the landmark-map error (rad)', 0.0, 1.0),
@@ -188,11 +190,13 @@ class GeneralFusion:
             **{f.name: p[f'imu_{f.name}'] for f in fields(ImuHealthLimits)}))
             if self.imu is not None else None)
         self.gyro_used = False         # this frame step follows the gyro (imu_health says it may)
+        self.lone_rotations = 0        # lone cameras' track rotations used (diagnostics)
         self.bias_fixes = 0            # gyro bias measurements from the tracks used (diagnostics)
         self._bias_frames_skipped = 0  # frames since the last bias fit, while the bias is settled
         self.gravity_fixes = 0         # frame steps whose accelerometer measured up (diagnostics)
         self._twist_before: Optional[Tuple[int, np.ndarray]] = None   # (stamp, v) at the last step
         self.last_stamp_ns: Optional[int] = None
+        self.clone_stamps: Dict[str, List[int]] = {}   # camera -> the stamps of its pose clones
         self.wheel_used_ns: Optional[int] = None       # the stamp of the last wheel reading applied
         self.last_support_ns: Optional[int] = None     # last camera update or wheel prior
         self.has_tracked = False       # a camera fix, or (start_from_tracks) a twist from the tracks
@@ -404,6 +408,9 @@ class GeneralFusion:
         T_prev = self.last_T
 
         road_twists = self._road_twist() if self.has_tracked else 0
+        if len(camera_estimates) == 1 and len(self.rig.names) > 1 and self.has_tracked:
+            # (before the fix: the rotation corrects the prediction the fix is gated against)
+            self._lone_track_rotation(next(iter(camera_estimates)))
         # A camera alone at its stamp (free-running cameras, each fused at its own capture
         # time): a median of it and the prediction cannot out-vote either, and gating it on its
         # own covariance rejected it whenever the prediction erred (in turns); the EKF's gate
@@ -545,6 +552,15 @@ class GeneralFusion:
                 scale_ratio = scale_correction(relative_motion(T_prev, T_now)[1], r)
         self.last_T = T_now
         self.frames.append((int(stamp_ns), camera_stamps))
+        if alone and p['lone_camera_track_rotation']:
+            # this stamp's pose, for the camera's rotation to its next frame (its tracks come
+            # a frame late: the two before it stay)
+            (name,) = camera_estimates
+            held = self.clone_stamps.setdefault(name, [])
+            self.ekf.clone_pose((name, int(stamp_ns)))
+            held.append(int(stamp_ns))
+            while len(held) > 2:
+                self.ekf.drop_clone((name, held.pop(0)))
         return FusedEstimate(
             stamp_ns=stamp_ns, T_odom_base=T_now, pose_covariance=self.ekf.pose_covariance,
             twist=self.ekf.twist, twist_covariance=self.ekf.twist_covariance, state=state,
@@ -608,6 +624,34 @@ class GeneralFusion:
                                         axes=self._twist_axes((0, 1, 2, 3, 4, 5)))
         return used
 
+    def _lone_track_rotation(self, name: str) -> bool:
+        """lone_camera_track_rotation: camera `name`'s rotation between its two previous
+        frames (this frame's tracks may still be on their way) from its tracks, between the
+        pose clones at those stamps."""
+        held = self.clone_stamps.get(name, [])
+        if not self.params['lone_camera_track_rotation'] or len(held) < 2:
+            return False
+        s0, s1 = held[-2], held[-1]
+        a, b = self.ekf.cloned_pose((name, s0)), self.ekf.cloned_pose((name, s1))
+        if a is None or b is None:
+            return False
+        cams = self.scale.tracks_between({name: s0}, {name: s1}, s0, s1)
+        if not cams:
+            return False
+        Ta, Tb = a[0], b[0]
+        R0 = Ta[:3, :3].T @ Tb[:3, :3]
+        t0 = Ta[:3, :3].T @ (Tb[:3, 3] - Ta[:3, 3])
+        if np.linalg.norm(t0) < 1e-3:
+            t0 = np.array([1e-2, 0.0, 0.0])
+        fit = refine_rig_motion(R0, t0, cams)
+        if not fit.ok:
+            return False
+        used, _ = self.ekf.update_relative_rotation((name, s0), (name, s1), fit.R,
+                                                    self.params['lone_track_rotation_cov_scale'] * fit.covariance[:3, :3],
+                                                    gate_chi2=self.params['ekf_gate_chi2'])
+        self.lone_rotations += int(used)
+        return used
+
     def _fit_start(self, dt: float) -> np.ndarray:
         """The filter's translation over dt, a start for the rig-motion fits."""
         t0 = self.ekf.twist[:3] * dt
@@ -667,19 +711,25 @@ class GeneralFusion:
         return bool(self.params['rig_rotation_scale'] and self.params['scale_from_tracks']
                     and metric_source(self.rig, False) is None)
 
+    def _lone_rotations(self) -> bool:
+        """lone_camera_track_rotation on a rig of several cameras: whether they are free-running
+        shows only in their stamps, and their tracks are wanted from the first frame on."""
+        return len(self.rig.names) > 1 and bool(self.params['lone_camera_track_rotation'])
+
     def _bias_from_tracks(self) -> bool:
         return self.wants_imu() and bool(self.params['gyro_bias_from_tracks'])
 
     def wants_bearings(self) -> bool:
         """Whether the quarters' tracks can tell this fusion anything: the scale (above) or,
         with a gyro, its bias (gyro_bias_from_tracks)."""
-        return self._bearings_for_scale() or self._bias_from_tracks()
+        return self._bearings_for_scale() or self._bias_from_tracks() or self._lone_rotations()
 
     def add_bearings(self, camera: str, quarter: int, stamp_ns: int, ids, xy, sigma):
         """A quarter's tracks at one of its frames (normalised points and their std), for the
         scale from the rig's motion and the gyro's bias; taken from the frame after it on."""
-        if (self._bearings_for_scale() and not self.wheel_seen) or self._bias_from_tracks():
-            self.scale.add_bearings(camera, quarter, stamp_ns, ids, xy, sigma)
+        for_scale = (self._bearings_for_scale() and not self.wheel_seen) or self._bias_from_tracks()
+        if for_scale or self._lone_rotations():
+            self.scale.add_bearings(camera, quarter, stamp_ns, ids, xy, sigma, for_scale=for_scale)
 
     def _gyro_bias_from_tracks(self, stamp_ns: int) -> bool:
         """gyro_bias_from_tracks: the rig's rotation between the two previous frames from all

@@ -72,6 +72,7 @@ class ScaleState:
         self.last_snap = None
         # camera -> {stamp: {quarter: (ids, xy, sigma)}}: the quarters' tracks (add_bearings)
         self.bearings: Dict[str, Dict[int, dict]] = {}
+        self.tracks_for_scale = False   # tracks came for the scale (add_bearings)
         self.pair_end = None                           # stamp: track pairs do not overlap
         self.last_fit = None                           # rig_motion_fit.RigMotionFit, diagnostics
         self.n_observations = 0                        # scale observations fused (diagnostics)
@@ -87,12 +88,15 @@ class ScaleState:
             # the road's points are metric from the first frame, to about the camera's pitch
             self.P = float(params['road_scale_prior_std']) ** 2
 
-    def add_bearings(self, camera: str, quarter: int, stamp_ns: int, ids, xy, sigma):
+    def add_bearings(self, camera: str, quarter: int, stamp_ns: int, ids, xy, sigma, for_scale: bool = True):
         """One quarter's tracks at one of its frames (normalised points, their std). A second
         message for the same frame adds to the first: the features the quarter extracted on
-        that frame after it sent its tracks (QuarterEstimator.new_bearings)."""
+        that frame after it sent its tracks (QuarterEstimator.new_bearings). for_scale: the
+        scale is observed on the tracks (else they are kept for the rotations of free-running
+        cameras alone)."""
         if camera not in self.rig.names:
             return
+        self.tracks_for_scale = self.tracks_for_scale or for_scale
         per = self.bearings.setdefault(camera, {})
         at = per.setdefault(int(stamp_ns), {})
         entry = (np.asarray(ids), np.asarray(xy, float), np.asarray(sigma, float))
@@ -150,7 +154,7 @@ class ScaleState:
         if self.rig.road_scale:
             self._observe_road()
             return
-        if p['scale_from_tracks'] and self.bearings:
+        if p['scale_from_tracks'] and self.tracks_for_scale:
             self._observe_tracks()
             return
         R_now = T_now[:3, :3]

@@ -49,6 +49,7 @@ class SequentialResult:
     imu_samples: int = 0         # how many
     gyro_bias: List[object] = field(default_factory=list)   # the fusion's estimate per frame (None without a gyro)
     gyro_bias_fixes: int = 0     # of them measured from the tracks (general_fusion gyro_bias_from_tracks)
+    lone_track_rotations: int = 0   # free-running cameras' rotations from their tracks (lone_camera_track_rotation)
     bearing_messages: int = 0    # the quarters' track messages a graph would send (bearings topics)
     bearing_points: int = 0      # ... and the tracks in them
 
@@ -232,4 +233,5 @@ def run_sequential(bag_path, rig, quarter_params: dict = None, fusion_params: di
     if not (max_frames and len(result.fused) >= max_frames):
         flush()
     result.gyro_bias_fixes = fusion.bias_fixes
+    result.lone_track_rotations = fusion.lone_rotations
     return result

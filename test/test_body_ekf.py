@@ -115,3 +115,72 @@ def test_reinitialize_sets_pose_and_covariance():
     np.testing.assert_allclose(f.T, T, atol=1e-12)
     np.testing.assert_allclose(f.pose_covariance, POSE_COV * 4, rtol=1e-9)
     np.testing.assert_allclose(f.twist, 0)
+
+
+def test_pose_clone_follows_later_updates_as_a_filter_over_both_would():
+    """A clone of the pose, then a predict and a pose fix: the clone's correction and
+    covariance are those of one Kalman filter over the state and the clone together."""
+    f = BodyEKF()
+    f.reinitialize(truth(0.0), POSE_COV, twist=np.r_[0.5, 0, 0, 0, 0, 0.3])
+    f.predict(0.1)
+    f.clone_pose('a')
+    T_a, P0 = f.T, f.kf.P.copy()
+    f.predict(0.1)
+    F, Q = f.kf.F, f.kf.Q
+    n = f.dim
+    # the joint covariance of (state, clone) after the predict
+    J = np.zeros((n + 6, n + 6))
+    J[:n, :n] = F @ P0 @ F.T + Q
+    J[:n, n:] = F @ P0[:, :6]
+    J[n:, :n] = J[:n, n:].T
+    J[n:, n:] = P0[:6, :6]
+    np.testing.assert_allclose(J[:n, :n], f.kf.P, atol=1e-15)
+    meas = truth(0.2) @ se3.make_T(se3.rotvec_to_R([0, 0, 0.01]), [0.02, -0.01, 0.0])
+    y = se3.pose_error(meas, f.T)
+    ok, _ = f.update_pose(meas, POSE_COV)
+    assert ok
+    H = np.zeros((6, n + 6))
+    H[:, :6] = np.eye(6)
+    S = H @ J @ H.T + POSE_COV
+    K = J @ H.T @ np.linalg.inv(S)
+    T_c, C_c = f.cloned_pose('a')
+    d = (K @ y)[n:]
+    assert np.linalg.norm(d) > 1e-3                           # the fix moved the clone
+    np.testing.assert_allclose(se3.pose_error(T_c, T_a), d, atol=1e-9)
+    np.testing.assert_allclose(C_c, (J - K @ S @ K.T)[n:, n:], atol=1e-12)
+
+
+def test_rotation_between_clones_tells_the_turn_rate():
+    """A body turning at 1.5 rad/s, the filter at rest: the rotation between clones of
+    consecutive frames (as a camera's tracks measure it) brings the twist to the turn, where
+    the prediction alone stays at rest."""
+    w, dt = 1.5, 1.0 / 15
+    out = {}
+    for measured in (False, True):
+        f = BodyEKF()
+        f.reinitialize(np.eye(4), POSE_COV)
+        f.clone_pose(0)
+        for k in range(1, 16):
+            f.predict(dt)
+            f.clone_pose(k)
+            if measured:
+                ok, _ = f.update_relative_rotation(k - 1, k, se3.rotvec_to_R([0, 0, w * dt]),
+                                                   np.eye(3) * 1e-3 ** 2)
+                assert ok
+            f.drop_clone(k - 1)
+        assert f.clone_keys == [15]
+        out[measured] = (f.twist[5], se3.yaw_of(f.T[:3, :3]))
+    assert out[False][0] == pytest.approx(0.0, abs=1e-9)
+    assert out[True][0] == pytest.approx(w, abs=0.1)
+    assert out[True][1] == pytest.approx(w * 15 * dt, abs=0.05)
+
+
+def test_clones_go_with_a_restart_and_refuse_what_they_cannot_measure():
+    f = BodyEKF()
+    f.clone_pose('a')
+    f.predict(0.1)
+    f.clone_pose('b')
+    assert f.update_relative_rotation('a', 'missing', np.eye(3), np.eye(3) * 1e-4) == (False, float('inf'))
+    assert not f.update_relative_rotation('a', 'b', np.full((3, 3), np.nan), np.eye(3) * 1e-4)[0]
+    f.reinitialize(np.eye(4), POSE_COV)
+    assert f.clone_keys == [] and f.cloned_pose('a') is None

@@ -125,8 +125,11 @@ class Rig:
     def sends_bearings(self) -> bool:
         """Whether the quarters publish their tracks for the general arbiter: for its scale
         without a metric source of the rig's own and over a road (road_scale), and for the
-        gyro's bias with an IMU (general_fusion gyro_bias_from_tracks)."""
-        return self.metric_source is None or self.road_scale or self.imu is not None
+        gyro's bias with an IMU (general_fusion gyro_bias_from_tracks), and for the rotation
+        of free-running cameras between their frames (lone_camera_track_rotation: whether
+        the cameras are synchronised shows only in their stamps, so any rig of several)."""
+        return (self.metric_source is None or self.road_scale or self.imu is not None
+                or len(self.cameras) > 1)
 
     def stereo_partners(self, name: str) -> List[str]:
         """The cameras named with `name` in a stereo pair, in pair order."""
