@@ -9,9 +9,9 @@ The loop: 10 s, 320 x 240, fx 200, seed 7 (2.5 m/s at its fastest). Lockstep acc
 asserted against absolute limits (the accuracy suite's loop limits, 0.6 % ATE and 0.7 % final
 drift at 8 Hz, with the margin a faster, shorter run needs) and, for the fixed offsets and the
 mixed rates, against the synchronised run of the same scene. Random phases meet the absolute
-limits; within 20 % of the synchronised run they are on seeds 7-9 and not on 10 and 11 (twice
-theirs: heading lost in the fast turns, where a camera alone is not out-voted; docs/fusion.md
-gives the figures), so that is not asserted. Rate-mode
+limits and, on this seed, come within 20 % of the synchronised run (over seeds 7-11 not every
+seed does: docs/fusion.md gives the figures), each camera's rotation between its frames
+measured on its tracks (lone_camera_track_rotation). Rate-mode
 accuracy depends on the machine's load: here rate mode must run through and fuse what it
 takes without timeouts.
 """
@@ -151,8 +151,16 @@ def test_offsets_over_most_of_the_period_lockstep(runs, bags):
 
 def test_random_phases_lockstep(runs, bags):
     assert every_image_fused_alone(runs['random'], bags['random']) >= 0.97 * 4 * 150
-    m = scored(runs['random'])
+    m, sync = scored(runs['random']), scored(runs['sync'])
     assert m['ate_pct'] <= ATE_LIMIT_PCT and m['final_drift_pct'] <= DRIFT_LIMIT_PCT, m
+    # (seed 7: 0.23 / 0.08 % against 0.34 / 0.28 synchronised; without the cameras' own
+    # rotations 0.19 / 0.29)
+    assert m['ate_pct'] <= RELATIVE * sync['ate_pct'], (m, sync)
+    assert m['final_drift_pct'] <= RELATIVE * sync['final_drift_pct'], (m, sync)
+    # every camera alone at its stamp, its rotation from the frame before measured on its tracks
+    diags = runs['random'].diagnostics('ego_motion/general_arbiter')
+    assert int(diags[-1].values['lone_track_rotations']) >= 0.8 * 4 * 150
+    assert int(runs['sync'].diagnostics('ego_motion/general_arbiter')[-1].values['lone_track_rotations']) == 0
 
 
 def test_lockstep_equals_the_sequential_pipeline_with_random_phases(runs, bags):
