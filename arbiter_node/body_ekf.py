@@ -142,23 +142,25 @@ class BodyEKF:
     # state.
     def _clear_clones(self):
         self.clone_keys = []
-        self.clone_T = []
+        self.clone_R = np.zeros((0, 3, 3))
+        self.clone_p = np.zeros((0, 3))
         self.Pcc = np.zeros((0, 0))
         self.Pcx = np.zeros((0, self.dim))
 
     def clone_pose(self, key) -> None:
         """Keep the current pose under `key` (replacing one of that key)."""
         self.drop_clone(key)
-        m = len(self.clone_keys)
-        Pcc = np.zeros((6 * m + 6, 6 * m + 6))
-        Pcc[:6 * m, :6 * m] = self.Pcc
-        Pcc[:6 * m, 6 * m:] = self.Pcx[:, :6]
-        Pcc[6 * m:, :6 * m] = self.Pcx[:, :6].T
-        Pcc[6 * m:, 6 * m:] = self.kf.P[:6, :6]
+        m6 = 6 * len(self.clone_keys)
+        Pcc = np.empty((m6 + 6, m6 + 6))
+        Pcc[:m6, :m6] = self.Pcc
+        Pcc[:m6, m6:] = self.Pcx[:, :6]
+        Pcc[m6:, :m6] = self.Pcx[:, :6].T
+        Pcc[m6:, m6:] = self.kf.P[:6, :6]
         self.Pcc = Pcc
         self.Pcx = np.vstack([self.Pcx, self.kf.P[:6, :]])
         self.clone_keys.append(key)
-        self.clone_T.append(self.T)
+        self.clone_R = np.concatenate([self.clone_R, self.R_nom[None]])
+        self.clone_p = np.concatenate([self.clone_p, self.kf.x[None, :3, 0]])
 
     def drop_clone(self, key) -> None:
         if key not in self.clone_keys:
@@ -167,7 +169,9 @@ class BodyEKF:
         keep = np.r_[0:6 * i, 6 * i + 6:6 * len(self.clone_keys)]
         self.Pcc = self.Pcc[np.ix_(keep, keep)]
         self.Pcx = self.Pcx[keep]
-        del self.clone_keys[i], self.clone_T[i]
+        self.clone_R = np.delete(self.clone_R, i, axis=0)
+        self.clone_p = np.delete(self.clone_p, i, axis=0)
+        del self.clone_keys[i]
 
     def cloned_pose(self, key) -> Optional[Tuple[np.ndarray, np.ndarray]]:
         """(T, 6x6 covariance) of the pose cloned under `key`, as corrected since; None if none."""
@@ -175,21 +179,43 @@ class BodyEKF:
             return None
         i = self.clone_keys.index(key)
         sl = slice(6 * i, 6 * i + 6)
-        return self.clone_T[i].copy(), condition_covariance(self.Pcc[sl, sl], max_eig=MAX_VARIANCE)
+        return (se3.make_T(self.clone_R[i], self.clone_p[i]),
+                condition_covariance(self.Pcc[sl, sl], max_eig=MAX_VARIANCE))
+
+    def clone_T(self, key) -> Optional[np.ndarray]:
+        """The pose cloned under `key`, as corrected since; None if none."""
+        if key not in self.clone_keys:
+            return None
+        i = self.clone_keys.index(key)
+        return se3.make_T(self.clone_R[i], self.clone_p[i])
 
     def _correct_clones(self, d) -> None:
-        for i in range(len(self.clone_keys)):
-            di = d[6 * i:6 * i + 6]
-            T = self.clone_T[i]
-            self.clone_T[i] = se3.make_T(se3.rotvec_to_R(di[3:6]) @ T[:3, :3], T[:3, 3] + di[:3])
+        d = d.reshape(-1, 6)
+        self.clone_p = self.clone_p + d[:, :3]
+        # exp of every clone's correction at once (Rodrigues; the corrections are small,
+        # well inside its series' range below 1e-4 rad as well)
+        w = d[:, 3:]
+        th2 = np.einsum('ij,ij->i', w, w)
+        th = np.sqrt(th2)
+        small = th < 1e-4
+        safe = np.where(small, 1.0, th)
+        a = np.where(small, 1.0 - th2 / 6.0, np.sin(safe) / safe)
+        b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
+        K = np.zeros((len(w), 3, 3))
+        K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+        K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+        E = np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
+        self.clone_R = E @ self.clone_R
 
     def _clones_updated(self, P_before, H, S, y):
         # The clones' gain Pcx H^T S^-1 is the optimal one whatever the state's gain did
         # (Joseph form), so their cross-covariance follows Pcx (I - K H)^T = Pcx - Kc H P.
-        Kc = np.linalg.solve(S, H @ self.Pcx.T).T
-        self._correct_clones((Kc @ y).reshape(-1))
-        self.Pcc = self.Pcc - Kc @ S @ Kc.T
-        self.Pcx = self.Pcx - Kc @ H @ P_before
+        HPc = H @ self.Pcx.T
+        Kc = np.linalg.solve(S, HPc).T
+        self._correct_clones(Kc @ y)
+        Pcc = self.Pcc - Kc @ HPc
+        self.Pcc = 0.5 * (Pcc + Pcc.T)
+        self.Pcx = self.Pcx - Kc @ (H @ P_before)
 
     def update_relative_rotation(self, key_a, key_b, R_ab: np.ndarray, cov: np.ndarray,
                                  gate_chi2: float = float('inf')) -> Tuple[bool, float]:
@@ -201,30 +227,33 @@ class BodyEKF:
         if not (np.all(np.isfinite(R_ab)) and np.all(np.isfinite(cov))):
             return False, float('inf')
         ia, ib = self.clone_keys.index(key_a), self.clone_keys.index(key_b)
-        Ra, Rb = self.clone_T[ia][:3, :3], self.clone_T[ib][:3, :3]
+        Ra, Rb = self.clone_R[ia], self.clone_R[ib]
         # R_b = exp(e_b) Rb_hat, R_a = exp(e_a) Ra_hat: log(Ra_hat R_ab Rb_hat^T) = e_b - e_a
         y = se3.R_to_rotvec(Ra @ R_ab @ Rb.T)
         Rm = condition_covariance(Ra @ cov @ Ra.T, max_eig=MAX_VARIANCE)
-        n, m = self.dim, len(self.clone_keys)
-        P = np.block([[self.kf.P, self.Pcx.T], [self.Pcx, self.Pcc]])
-        H = np.zeros((3, n + 6 * m))
-        H[:, n + 6 * ib + 3:n + 6 * ib + 6] = np.eye(3)
-        H[:, n + 6 * ia + 3:n + 6 * ia + 6] = -np.eye(3)
-        S = H @ P @ H.T + Rm
+        n = self.dim
+        ra, rb = slice(6 * ia + 3, 6 * ia + 6), slice(6 * ib + 3, 6 * ib + 6)
+        # H picks the two clones' rotations: H P is a difference of their rows
+        HPx = self.Pcx[rb] - self.Pcx[ra]                  # (3, n): with the state
+        HPc = self.Pcc[rb] - self.Pcc[ra]                  # (3, 6m): with the clones
+        S = HPc[:, rb] - HPc[:, ra] + Rm
         d2 = mahalanobis2(y, S)
         if not np.isfinite(d2) or d2 > gate_chi2:
             return False, d2
         snap = self._snapshot()
-        K = np.linalg.solve(S, H @ P).T
-        dx = K @ y
-        A = np.eye(n + 6 * m) - K @ H
-        P = A @ P @ A.T + K @ Rm @ K.T
-        self.kf.x = self.kf.x + dx[:n].reshape(-1, 1)
-        self.kf.P = P[:n, :n]
+        try:
+            Kx = np.linalg.solve(S, HPx).T                 # (n, 3)
+            Kc = np.linalg.solve(S, HPc).T                 # (6m, 3)
+        except np.linalg.LinAlgError:
+            return False, d2
+        self.kf.x = self.kf.x + (Kx @ y).reshape(-1, 1)
+        self.kf.P = self.kf.P - Kx @ HPx
         if not self._finish(snap):
             return False, d2
-        self._correct_clones(dx[n:])
-        self.Pcx, self.Pcc = P[n:, :n], P[n:, n:]
+        self._correct_clones(Kc @ y)
+        self.Pcx = self.Pcx - Kc @ HPx
+        Pcc = self.Pcc - Kc @ HPc
+        self.Pcc = 0.5 * (Pcc + Pcc.T)
         return True, d2
 
     # ------------------------------------------------------------------ internals

@@ -632,13 +632,12 @@ class GeneralFusion:
         if not self.params['lone_camera_track_rotation'] or len(held) < 2:
             return False
         s0, s1 = held[-2], held[-1]
-        a, b = self.ekf.cloned_pose((name, s0)), self.ekf.cloned_pose((name, s1))
-        if a is None or b is None:
+        Ta, Tb = self.ekf.clone_T((name, s0)), self.ekf.clone_T((name, s1))
+        if Ta is None or Tb is None:
             return False
         cams = self.scale.tracks_between({name: s0}, {name: s1}, s0, s1)
         if not cams:
             return False
-        Ta, Tb = a[0], b[0]
         R0 = Ta[:3, :3].T @ Tb[:3, :3]
         t0 = Ta[:3, :3].T @ (Tb[:3, 3] - Ta[:3, 3])
         if np.linalg.norm(t0) < 1e-3:
