@@ -719,13 +719,15 @@ class GeneralFusion:
         return self.wants_imu() and bool(self.params['gyro_bias_from_tracks'])
 
     def wants_bearings(self) -> bool:
-        """Whether the quarters' tracks can tell this fusion anything: the scale (above) or,
-        with a gyro, its bias (gyro_bias_from_tracks)."""
+        """Whether the quarters' tracks can tell this fusion anything: the scale (above),
+        with a gyro its bias (gyro_bias_from_tracks), on a rig of several cameras the rotation
+        of each one fused alone at its stamp (lone_camera_track_rotation)."""
         return self._bearings_for_scale() or self._bias_from_tracks() or self._lone_rotations()
 
     def add_bearings(self, camera: str, quarter: int, stamp_ns: int, ids, xy, sigma):
         """A quarter's tracks at one of its frames (normalised points and their std), for the
-        scale from the rig's motion and the gyro's bias; taken from the frame after it on."""
+        scale from the rig's motion, the gyro's bias and free-running cameras' rotations;
+        taken from the frame after it on."""
         for_scale = (self._bearings_for_scale() and not self.wheel_seen) or self._bias_from_tracks()
         if for_scale or self._lone_rotations():
             self.scale.add_bearings(camera, quarter, stamp_ns, ids, xy, sigma, for_scale=for_scale)
