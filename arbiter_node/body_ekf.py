@@ -175,12 +175,11 @@ class BodyEKF:
 
     def cloned_pose(self, key) -> Optional[Tuple[np.ndarray, np.ndarray]]:
         """(T, 6x6 covariance) of the pose cloned under `key`, as corrected since; None if none."""
-        if key not in self.clone_keys:
+        T = self.clone_T(key)
+        if T is None:
             return None
-        i = self.clone_keys.index(key)
-        sl = slice(6 * i, 6 * i + 6)
-        return (se3.make_T(self.clone_R[i], self.clone_p[i]),
-                condition_covariance(self.Pcc[sl, sl], max_eig=MAX_VARIANCE))
+        i = 6 * self.clone_keys.index(key)
+        return T, condition_covariance(self.Pcc[i:i + 6, i:i + 6], max_eig=MAX_VARIANCE)
 
     def clone_T(self, key) -> Optional[np.ndarray]:
         """The pose cloned under `key`, as corrected since; None if none."""

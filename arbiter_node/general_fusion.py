@@ -164,6 +164,12 @@ class FusedEstimate:
     shift_twist_covariance: Optional[np.ndarray] = None
 
 
+def _movable_start(t0: np.ndarray) -> np.ndarray:
+    """A rig-motion fit's start translation: t0, or a small one the fit can move from where
+    t0 is (nearly) zero."""
+    return t0 if np.linalg.norm(t0) >= 1e-3 else np.array([1e-2, 0.0, 0.0])
+
+
 class GeneralFusion:
     def __init__(self, rig: Rig, params: Optional[Mapping[str, object]] = None):
         self.rig = rig
@@ -196,7 +202,6 @@ class GeneralFusion:
         self.gravity_fixes = 0         # frame steps whose accelerometer measured up (diagnostics)
         self._twist_before: Optional[Tuple[int, np.ndarray]] = None   # (stamp, v) at the last step
         self.last_stamp_ns: Optional[int] = None
-        self.clone_stamps: Dict[str, List[int]] = {}   # camera -> the stamps of its pose clones
         self.wheel_used_ns: Optional[int] = None       # the stamp of the last wheel reading applied
         self.last_support_ns: Optional[int] = None     # last camera update or wheel prior
         self.has_tracked = False       # a camera fix, or (start_from_tracks) a twist from the tracks
@@ -408,14 +413,14 @@ class GeneralFusion:
         T_prev = self.last_T
 
         road_twists = self._road_twist() if self.has_tracked else 0
-        if len(camera_estimates) == 1 and len(self.rig.names) > 1 and self.has_tracked:
-            # (before the fix: the rotation corrects the prediction the fix is gated against)
-            self._lone_track_rotation(next(iter(camera_estimates)))
         # A camera alone at its stamp (free-running cameras, each fused at its own capture
         # time): a median of it and the prediction cannot out-vote either, and gating it on its
         # own covariance rejected it whenever the prediction erred (in turns); the EKF's gate
         # weighs both.
         alone = len(camera_estimates) == 1 and len(self.rig.names) > 1
+        if alone and self.has_tracked:
+            # (before the fix: the rotation corrects the prediction the fix is gated against)
+            self._lone_track_rotation(next(iter(camera_estimates)))
         prior = (self.ekf.T, self.ekf.pose_covariance) if (p['median_use_prior'] and self.has_tracked
                                                            and not alone) else None
         shift_twist = (self.ekf.twist, self.ekf.twist_covariance)
@@ -556,11 +561,9 @@ class GeneralFusion:
             # this stamp's pose, for the camera's rotation to its next frame (its tracks come
             # a frame late: the two before it stay)
             (name,) = camera_estimates
-            held = self.clone_stamps.setdefault(name, [])
             self.ekf.clone_pose((name, int(stamp_ns)))
-            held.append(int(stamp_ns))
-            while len(held) > 2:
-                self.ekf.drop_clone((name, held.pop(0)))
+            for older in self._clone_stamps(name)[:-2]:
+                self.ekf.drop_clone((name, older))
         return FusedEstimate(
             stamp_ns=stamp_ns, T_odom_base=T_now, pose_covariance=self.ekf.pose_covariance,
             twist=self.ekf.twist, twist_covariance=self.ekf.twist_covariance, state=state,
@@ -628,21 +631,16 @@ class GeneralFusion:
         """lone_camera_track_rotation: camera `name`'s rotation between its two previous
         frames (this frame's tracks may still be on their way) from its tracks, between the
         pose clones at those stamps."""
-        held = self.clone_stamps.get(name, [])
-        if not self.params['lone_camera_track_rotation'] or len(held) < 2:
+        held = self._clone_stamps(name)
+        if len(held) < 2:
             return False
         s0, s1 = held[-2], held[-1]
-        Ta, Tb = self.ekf.clone_T((name, s0)), self.ekf.clone_T((name, s1))
-        if Ta is None or Tb is None:
-            return False
         cams = self.scale.tracks_between({name: s0}, {name: s1}, s0, s1)
         if not cams:
             return False
-        R0 = Ta[:3, :3].T @ Tb[:3, :3]
-        t0 = Ta[:3, :3].T @ (Tb[:3, 3] - Ta[:3, 3])
-        if np.linalg.norm(t0) < 1e-3:
-            t0 = np.array([1e-2, 0.0, 0.0])
-        fit = refine_rig_motion(R0, t0, cams)
+        Ta, Tb = self.ekf.clone_T((name, s0)), self.ekf.clone_T((name, s1))
+        fit = refine_rig_motion(Ta[:3, :3].T @ Tb[:3, :3],
+                                _movable_start(Ta[:3, :3].T @ (Tb[:3, 3] - Ta[:3, 3])), cams)
         if not fit.ok:
             return False
         used, _ = self.ekf.update_relative_rotation((name, s0), (name, s1), fit.R,
@@ -651,12 +649,13 @@ class GeneralFusion:
         self.lone_rotations += int(used)
         return used
 
+    def _clone_stamps(self, name: str) -> List[int]:
+        """The stamps of camera `name`'s pose clones in the body EKF, oldest first."""
+        return [s for n, s in self.ekf.clone_keys if n == name]
+
     def _fit_start(self, dt: float) -> np.ndarray:
         """The filter's translation over dt, a start for the rig-motion fits."""
-        t0 = self.ekf.twist[:3] * dt
-        if np.linalg.norm(t0) < 1e-3:
-            t0 = np.array([1e-2, 0.0, 0.0])      # a start the fit can move from (not zero)
-        return t0
+        return _movable_start(self.ekf.twist[:3] * dt)
 
     def _twist_axes(self, axes):
         """The axes of a twist measurement (the wheel's, or the tracks' of the previous frame
