@@ -58,6 +58,7 @@ NODE_PARAMETERS = {
     'learn_sync_window': (False, 'with sync_window_s 0: learn the window from the cameras\' first estimates (arbiter_node/capture_spread) when their stamps differ, use it from then on and say which sync_window_s to set', None, None),
     'wheel_wait_s': (0.5, 'then the longest wait for the wheel reading of that frame (while a wheel publisher is connected)', 0.0, 60.0),
     'imu_wait_s': (0.05, 'with the rig\'s IMU (use_imu): the longest wait for its samples up to a frame\'s stamp (while an IMU publisher is connected)', 0.0, 60.0),
+    'tracks_wait_s': (0.05, 'free-running cameras (lone_camera_track_rotation): the longest wait for the tracks of a camera fused alone at its stamp, from its quarters', 0.0, 60.0),
     'imu_qos': ('sensor_data', 'IMU subscription QoS: sensor_data (best effort, as drivers publish) or reliable (lockstep replay)', None, None),
     'path_max_poses': (5000, 'poses kept on /ego_motion/path (oldest dropped)', 1, 1000000),
     'path_min_spacing_m': (0.05, '/ego_motion/path keeps a pose every this many metres', 0.0, 100.0),
@@ -94,6 +95,7 @@ class GeneralArbiterNode(Node):
         self.governor = FrameGovernor(p['max_lag_s'])
         self.issued = ScheduleBook()         # the schedules published, for the frames they skip
         self.off_schedule = 0                # camera estimates of skipped frames, left out
+        self.tracks_timed_out = 0            # lone cameras' frames fused without their tracks (tracks_wait_s)
         # Latched: a quarter that starts or moves later still gets the schedule in force.
         self.pub_schedule = self.create_publisher(Int64MultiArray, '/ego_motion/frame_schedule', LATCHED)
         # Latched too: map rescales (map_scale), each applied from a given frame on.
@@ -112,7 +114,7 @@ class GeneralArbiterNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', RELIABLE)
         self.camera_subs = {}
         self.take_local(())
-        self.held = []                       # (sync group, since): waiting for its wheel reading
+        self.held = []                       # (sync group, since): waiting for its wheel reading (IMU, tracks)
         self.imu_sub = None
         self.imu_error = None                # the last problem said of the IMU (not said again)
         self.imu_unreadable = 0              # samples whose bytes did not read as sensor_msgs/Imu
@@ -196,6 +198,8 @@ class GeneralArbiterNode(Node):
             self.get_logger().error(f'{bearings_topic(camera, quarter)}: {e}', throttle_duration_sec=5.0)
             return
         self.fusion.add_bearings(camera, quarter, stamp_ns, ids, xy, sigma)
+        if self.held:
+            self.fuse_held()
 
     def wheel_settled(self, stamp_ns) -> bool:
         # A frame whose cameras are all in is fused once its wheel reading is in too: fusing
@@ -267,6 +271,10 @@ class GeneralArbiterNode(Node):
                 return
             if not self.imu_settled(g.stamp_ns) and time.monotonic() - since < self.p['imu_wait_s']:
                 return
+            if not self.fusion.tracks_settled(g.stamp_ns, g.items):
+                if time.monotonic() - since < self.p['tracks_wait_s']:
+                    return
+                self.tracks_timed_out += 1
             self.held.pop(0)
             t0 = time.thread_time()
             # Rig order, not arrival order: float sums must not depend on the scheduler.
@@ -413,6 +421,7 @@ class GeneralArbiterNode(Node):
              'scale_relative_std': round(float(fused.scale_relative_std), 6),
              'scale_observations': self.fusion.scale.n_observations,
              'lone_track_rotations': self.fusion.lone_rotations,   # free-running cameras' own turns
+             'tracks_timed_out': self.tracks_timed_out,
              'rig_fit': self.fusion.scale.fit_summary(),
              'cameras_used': ','.join(fused.cameras_used), 'cameras_missing': ','.join(missing),
              'frame_stride': self.governor.stride, 'frames_kept': f'{self.governor.keep}/{self.governor.stride}',

@@ -418,9 +418,9 @@ class GeneralFusion:
         # own covariance rejected it whenever the prediction erred (in turns); the EKF's gate
         # weighs both.
         alone = len(camera_estimates) == 1 and len(self.rig.names) > 1
-        if alone and self.has_tracked:
+        if alone and self.has_tracked and p['lone_camera_track_rotation']:
             # (before the fix: the rotation corrects the prediction the fix is gated against)
-            self._lone_track_rotation(next(iter(camera_estimates)))
+            self._lone_track_rotation(next(iter(camera_estimates)), stamp_ns)
         prior = (self.ekf.T, self.ekf.pose_covariance) if (p['median_use_prior'] and self.has_tracked
                                                            and not alone) else None
         shift_twist = (self.ekf.twist, self.ekf.twist_covariance)
@@ -558,12 +558,8 @@ class GeneralFusion:
         self.last_T = T_now
         self.frames.append((int(stamp_ns), camera_stamps))
         if alone and p['lone_camera_track_rotation']:
-            # this stamp's pose, for the camera's rotation to its next frame (its tracks come
-            # a frame late: the two before it stay)
-            (name,) = camera_estimates
-            self.ekf.clone_pose((name, int(stamp_ns)))
-            for older in self._clone_stamps(name)[:-2]:
-                self.ekf.drop_clone((name, older))
+            # (the first fix or a restart: the filter began here, with no clones)
+            self._keep_lone_clone(next(iter(camera_estimates)), stamp_ns)
         return FusedEstimate(
             stamp_ns=stamp_ns, T_odom_base=T_now, pose_covariance=self.ekf.pose_covariance,
             twist=self.ekf.twist, twist_covariance=self.ekf.twist_covariance, state=state,
@@ -627,10 +623,11 @@ class GeneralFusion:
                                         axes=self._twist_axes((0, 1, 2, 3, 4, 5)))
         return used
 
-    def _lone_track_rotation(self, name: str) -> bool:
-        """lone_camera_track_rotation: camera `name`'s rotation between its two previous
-        frames (this frame's tracks may still be on their way) from its tracks, between the
-        pose clones at those stamps."""
+    def _lone_track_rotation(self, name: str, stamp_ns: int) -> bool:
+        """lone_camera_track_rotation: camera `name`'s rotation from its previous frame to this
+        one (stamp_ns) fitted to its tracks, between the pose clones at those stamps: this
+        stamp's clone is the prediction, so the rotation corrects the turn's rate at once."""
+        self._keep_lone_clone(name, stamp_ns)
         held = self._clone_stamps(name)
         if len(held) < 2:
             return False
@@ -648,6 +645,23 @@ class GeneralFusion:
                                                     gate_chi2=self.params['ekf_gate_chi2'])
         self.lone_rotations += int(used)
         return used
+
+    def _keep_lone_clone(self, name: str, stamp_ns: int) -> None:
+        """A clone of the pose at camera `name`'s stamp, and of its previous one."""
+        if (name, int(stamp_ns)) not in self.ekf.clone_keys:
+            self.ekf.clone_pose((name, int(stamp_ns)))
+        for older in self._clone_stamps(name)[:-2]:
+            self.ekf.drop_clone((name, older))
+
+    def tracks_settled(self, stamp_ns: int, cameras) -> bool:
+        """Whether a frame of `cameras` can be fused as far as the tracks go: a camera fused
+        alone (lone_camera_track_rotation) waits for its quarters' tracks of that stamp (as
+        many quarters as sent them at its previous frame); a lockstep replay then fuses what
+        the sequential pipeline does, whichever message the executor took first."""
+        names = list(cameras)
+        if len(names) != 1 or not self._lone_rotations() or not self.has_tracked:
+            return True
+        return self.scale.tracks_complete(names[0], int(stamp_ns))
 
     def _clone_stamps(self, name: str) -> List[int]:
         """The stamps of camera `name`'s pose clones in the body EKF, oldest first."""

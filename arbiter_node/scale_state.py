@@ -108,6 +108,17 @@ class ScaleState:
         while len(per) > BEARING_STAMPS_KEPT:
             del per[min(per)]
 
+    def tracks_complete(self, camera: str, stamp_ns: int) -> bool:
+        """Whether camera's tracks at stamp_ns came from every quarter that sent its tracks at
+        the camera's frame before (true before it sent any)."""
+        per = self.bearings.get(camera)
+        if not per:
+            return True
+        before = [s for s in per if s < stamp_ns]
+        if not before:
+            return True
+        return set(per[max(before)]) <= set(per.get(stamp_ns, ()))
+
     @property
     def relative_std(self) -> float:
         return math.sqrt(self.P)

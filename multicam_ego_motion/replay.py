@@ -175,6 +175,7 @@ def graph_overrides(lockstep: bool, use_wheel: bool, debug_images: bool = False,
     general = {'sync_timeout_s': LOCKSTEP_SYNC_TIMEOUT_S if lockstep else 0.2,
                'wheel_wait_s': 2.0 if lockstep else 0.05,
                'imu_wait_s': 2.0 if lockstep else 0.05,
+               'tracks_wait_s': 2.0 if lockstep else 0.05,
                'imu_qos': 'reliable' if lockstep else 'sensor_data',
                'use_wheel_odometry': use_wheel,
                # rate mode: the lag behind the frames (frame skipping, max_lag_s) is read on

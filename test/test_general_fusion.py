@@ -272,3 +272,32 @@ def test_a_camera_alone_at_its_stamp_weighs_less_than_one_of_a_frame():
     lone1, lone2 = pull(1.0, True), pull(2.0, True)
     assert 0.0 < lone2 < 0.8 * lone1
     assert pull(1.0, False) == pull(2.0, False)
+
+
+def test_a_camera_alone_waits_for_its_quarters_tracks_of_its_stamp():
+    """tracks_settled: a camera fused alone (free-running cameras) is fused once every quarter
+    that sent its tracks at the camera's previous frame has sent them at this one, so its
+    rotation from that frame to this one is fitted with this frame's tracks (the general
+    arbiter waits up to tracks_wait_s). A frame of several cameras, a filter not started yet,
+    or lone_camera_track_rotation off do not wait."""
+    g = GeneralFusion(RIG)
+    assert g.tracks_settled(0, ['back'])                     # nothing fused yet
+    rng = np.random.default_rng(4)
+    for k in range(3):
+        g.process(k * DT_NS, cams(rng, truth(k * 0.05), k * DT_NS))
+    a, b = 3 * DT_NS, 4 * DT_NS
+    xy, sigma = np.zeros((2, 2)), np.full(2, 1e-3)
+    assert g.tracks_settled(a, ['back'])                     # the camera never sent tracks
+    for q in (1, 2, 4):                                      # (quarter 3 sees nothing)
+        g.add_bearings('back', q, a, [1, 2], xy, sigma)
+    for q in (1, 2):
+        g.add_bearings('back', q, b, [1, 2], xy, sigma)
+        assert not g.tracks_settled(b, ['back'])
+    assert g.tracks_settled(b, ['back', 'front'])            # a frame of two: no wait
+    g.add_bearings('back', 4, b, [1], xy[:1], sigma[:1])
+    assert g.tracks_settled(b, ['back'])
+    off = GeneralFusion(RIG, {'lone_camera_track_rotation': False})
+    for k in range(3):
+        off.process(k * DT_NS, cams(rng, truth(k * 0.05), k * DT_NS))
+    off.add_bearings('back', 1, a, [1, 2], xy, sigma)
+    assert off.tracks_settled(b, ['back'])
