@@ -272,3 +272,14 @@ def test_bad_input_is_one_line_error(case, bag, tmp_path):
     assert len(lines) == 1 and expect in lines[0] and lines[0].startswith('ego-motion: error:'), \
         proc.stderr
 
+
+
+def test_subscription_counts_after_play_are_zero_not_an_error(bag, rclpy_context):
+    # The end of play destroys the publishers while the coordinator's background rebalance
+    # may still wait on a moved quarter's image subscription (make_link_waiter): that read
+    # raised InvalidHandle in the coordinator's thread, at the end of a rate-mode replay.
+    player = BagPlayer(bag, PlayOptions(rate=20.0, discovery_s=0.0, discovery_timeout_s=0.0,
+                                        topics=['/chatter'], clock=False))
+    result = player.play(rclpy_context)
+    assert result.messages == N_FRAMES
+    assert player.subscription_count('/chatter') == 0

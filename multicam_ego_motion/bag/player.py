@@ -247,9 +247,15 @@ class BagPlayer:
         self._republish.set()
 
     def subscription_count(self, topic: str) -> int:
-        """Subscribers matched to the player's publisher of a (published) topic."""
+        """Subscribers matched to the player's publisher of a (published) topic; 0 once the
+        player has destroyed it (the end of play, while a rebalance in the coordinator's
+        background thread may still wait on a moved quarter's link)."""
+        from rclpy.exceptions import InvalidHandle
         pub = self._publishers.get(topic)
-        return pub.get_subscription_count() if pub is not None else 0
+        try:
+            return pub.get_subscription_count() if pub is not None else 0
+        except InvalidHandle:
+            return 0
 
     def _trigger_topics(self):
         opts = self.options
