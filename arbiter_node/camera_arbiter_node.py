@@ -100,14 +100,16 @@ class CameraArbiterNode(Node):
                                   **self.fusion_params)
             msg = estimate_to_msg(fused)
             self.sent.add(g.stamp_ns, msg)
-            self.send(msg)
             ms = (time.thread_time() - t0) * 1e3
             level = 'warn' if g.missing or not fused.informative else 'ok'
             text = f'missing quarters: {", ".join(g.missing)}' if g.missing else fused.state
+            # Status before the estimate (see quarter_node.process): the general arbiter's
+            # snapshot must not precede this frame's batch of statuses.
             diagnostics.emit(ns_to_stamp(g.stamp_ns), diagnostics.status(
                 f'ego_motion/{self.camera}/arbiter', level, text,
                 {'quarters': len(g.items), 'state': fused.state, 'arbiter_ms': ms},
                 hardware_id=self.camera), self.diag_sink, self.pub_diag)
+            self.send(msg)
 
     def send(self, msg):
         # With the general arbiter co-hosted, published only for other listeners (a

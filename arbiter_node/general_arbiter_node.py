@@ -392,14 +392,8 @@ class GeneralArbiterNode(Node):
         t.linear.x, t.linear.y, t.linear.z, t.angular.x, t.angular.y, t.angular.z = (
             float(v) for v in fused.twist)
         odom.twist.covariance = covariance_field(fused.twist_covariance)
-        if odom_due(self.last_odom_ns, fused.stamp_ns, self.p['odom_rate_hz']):
-            self.last_odom_ns = fused.stamp_ns
-            if self.p['publish_tf']:
-                self.pub_tf.publish(TFMessage(transforms=[transform_msg(
-                    fused.T_odom_base, odom_frame, base_frame, fused.stamp_ns)]))
-            if self.path.add(fused.stamp_ns, fused.T_odom_base, PoseStamped(header=odom.header, pose=odom.pose.pose)):
-                self.pub_path.publish(Path(header=odom.header, poses=[p[2] for p in self.path.poses]))
-            self.pub_odom.publish(odom)
+        # The status is built before /odom goes out and sent right after it: a crash between
+        # the two (the frame saved, its status not) is then a window of two calls.
         missing = list(group.missing)
         level = 'ok' if fused.state == 'tracking' and not missing else 'warn'
         parts = [fused.state]
@@ -414,7 +408,7 @@ class GeneralArbiterNode(Node):
             if imu_level != 'ok':
                 parts.append(imu_message)
                 level = 'error' if 'error' in (level, imu_level) else 'warn'
-        diagnostics.emit(stamp, diagnostics.status(
+        status = diagnostics.status(
             'ego_motion/general_arbiter', level, '; '.join(parts),
             {**imu_values, 'state': fused.state, 'scale_observed': fused.scale_observed,
              'scale_source': fused.scale_fixed_by,
@@ -428,7 +422,16 @@ class GeneralArbiterNode(Node):
              'camera_rate_hz': round(self.governor.camera_rate_hz() or 0.0, 3),
              'achieved_rate_hz': round(self.governor.achieved_rate_hz() or 0.0, 3), 'arbiter_ms': ms,
              'estimates_off_schedule': self.off_schedule,
-             'sync_timed_out': group.timed_out}), self.diag_sink, self.pub_diag)
+             'sync_timed_out': group.timed_out})
+        if odom_due(self.last_odom_ns, fused.stamp_ns, self.p['odom_rate_hz']):
+            self.last_odom_ns = fused.stamp_ns
+            if self.p['publish_tf']:
+                self.pub_tf.publish(TFMessage(transforms=[transform_msg(
+                    fused.T_odom_base, odom_frame, base_frame, fused.stamp_ns)]))
+            if self.path.add(fused.stamp_ns, fused.T_odom_base, PoseStamped(header=odom.header, pose=odom.pose.pose)):
+                self.pub_path.publish(Path(header=odom.header, poses=[p[2] for p in self.path.poses]))
+            self.pub_odom.publish(odom)
+        diagnostics.emit(stamp, status, self.diag_sink, self.pub_diag)
 
 
 def odom_due(last_ns, stamp_ns, rate_hz) -> bool:

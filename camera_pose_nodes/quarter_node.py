@@ -534,9 +534,11 @@ class QuarterNode(Node):
                                                       *self.estimator.bearings()))
         self.sent.add(stamp_ns, est)
         msg = estimate_to_msg(est)
+        # Status before the estimate: a co-hosted arbiter chain may fuse the frame and save
+        # the general arbiter's snapshot inside send_estimate, and a worker's batch of this
+        # frame's statuses goes out only when complete: a crash right after the snapshot lost it.
+        self.publish_diag(msg.header.stamp, 'ok' if est.state == 'tracking' else 'warn', est.state, est)
         self.send_estimate(msg)
-        level = 'ok' if est.state == 'tracking' else 'warn'
-        self.publish_diag(msg.header.stamp, level, est.state, est)
         if self.pub_tracks is not None:
             self.publish_tracks(msg.header.stamp, est)
         self.apply_fused_ahead(stamp_ns)

@@ -182,6 +182,39 @@ def test_killed_worker_is_restarted_and_the_replay_completes(short_bag, tmp_path
     assert run.leftover_processes() == []
 
 
+def test_a_frame_whose_state_was_saved_keeps_its_diagnostics_through_a_crash(short_bag, tmp_path):
+    """The general arbiter's worker dies right after saving its state of the first frame:
+    that frame's /odom is out and the restored arbiter goes on from the next one, so the
+    frame's /diagnostics must be out too. (A worker sends a frame's statuses in one message
+    once all its nodes reported; the quarters and camera arbiters reported after passing
+    their estimates on, and where the last estimate completed the frame (the first one here:
+    later frames wait for the wheel) the co-hosted chain fused and saved it first: the crash
+    lost the frame's statuses.)"""
+    out = tmp_path / 'out'
+    here = Path(__file__).resolve().parent
+    env = replay_env(out, DIE_AFTER_SNAPSHOT='1', DIE_MARKER=str(tmp_path / 'died'))
+    env['PYTHONPATH'] = str(here) + os.pathsep + env['PYTHONPATH']
+    # One worker: every estimate reaches the general arbiter by direct calls in its process.
+    proc = subprocess.Popen([sys.executable, str(here / 'replay_losing_the_arbiter_after_a_snapshot.py'),
+                             'replay', str(short_bag), '--out', str(out), '--workers', '1'],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env, start_new_session=True)
+    run = finished(proc, short_bag, out, timeout=180)
+    assert run.returncode == 0, run
+    assert (tmp_path / 'died').exists()                  # the injected crash happened
+    assert re.search(r'worker \d restored in', run.stdout), run.stdout
+    stamps = run.odometry()[0]
+    assert len(stamps) == len(frame_stamps(short_bag))   # every frame once
+    fused = run.diagnostics('ego_motion/general_arbiter')
+    assert sorted(d.t for d in fused) == pytest.approx(list(stamps))
+    # Every camera arbiter's status of every frame as well (twice for a frame its restored
+    # quarters processed again).
+    arbiters = {d.name for d in run.diagnostics('ego_motion/') if d.name.endswith('/arbiter')}
+    assert len(arbiters) == 4
+    for name in arbiters:
+        assert sorted({d.t for d in run.diagnostics(name)}) == pytest.approx(list(stamps)), name
+
+
 @pytest.mark.parametrize('victim', ['source', 'destination'])
 def test_worker_killed_during_a_move_is_restored_with_the_moved_node(short_bag, tmp_path, victim):
     """A crash in the middle of a node move (a rebalance, here a forced move every 3 frames)
