@@ -417,7 +417,7 @@ class GeneralFusion:
         # time): a median of it and the prediction cannot out-vote either, and gating it on its
         # own covariance rejected it whenever the prediction erred (in turns); the EKF's gate
         # weighs both.
-        alone = len(camera_estimates) == 1 and len(self.rig.names) > 1
+        alone = self._alone(camera_estimates)
         if alone and self.has_tracked and p['lone_camera_track_rotation']:
             # (before the fix: the rotation corrects the prediction the fix is gated against)
             self._lone_track_rotation(next(iter(camera_estimates)), stamp_ns)
@@ -658,10 +658,14 @@ class GeneralFusion:
         alone (lone_camera_track_rotation) waits for its quarters' tracks of that stamp (as
         many quarters as sent them at its previous frame); a lockstep replay then fuses what
         the sequential pipeline does, whichever message the executor took first."""
-        names = list(cameras)
-        if len(names) != 1 or not self._lone_rotations() or not self.has_tracked:
+        if not (self._alone(cameras) and self.params['lone_camera_track_rotation'] and self.has_tracked):
             return True
-        return self.scale.tracks_complete(names[0], int(stamp_ns))
+        return self.scale.tracks_complete(next(iter(cameras)), int(stamp_ns))
+
+    def _alone(self, cameras) -> bool:
+        """Whether `cameras` (one frame's) is one camera of a rig of several: a free-running
+        camera fused at its own stamp (process() and the wait for its tracks decide alike)."""
+        return len(cameras) == 1 and len(self.rig.names) > 1
 
     def _clone_stamps(self, name: str) -> List[int]:
         """The stamps of camera `name`'s pose clones in the body EKF, oldest first."""
