@@ -1,4 +1,5 @@
 import dataclasses
+import pickle
 
 import numpy as np
 import pytest
@@ -301,3 +302,28 @@ def test_a_camera_alone_waits_for_its_quarters_tracks_of_its_stamp():
         off.process(k * DT_NS, cams(rng, truth(k * 0.05), k * DT_NS))
     off.add_bearings('back', 1, a, [1, 2], xy, sigma)
     assert off.tracks_settled(b, ['back'])
+
+
+def test_a_pickled_fusion_keeps_the_last_two_frames_of_tracks():
+    """The general arbiter's snapshot (after every update) holds each camera's tracks of its
+    last two frames, what the next rotation fit and the wait for tracks read, not all twelve a
+    scale pair may span; the restored fusion waits and fits as the original does."""
+    g = GeneralFusion(RIG)
+    rng = np.random.default_rng(5)
+    for k in range(3):
+        g.process(k * DT_NS, cams(rng, truth(k * 0.05), k * DT_NS))
+    xy, sigma = np.zeros((2, 2)), np.full(2, 1e-3)
+    stamps = [k * DT_NS for k in range(3, 9)]
+    for s in stamps:
+        for q in (1, 2, 3):
+            g.add_bearings('back', q, s, [1, 2], xy, sigma)
+    assert sorted(g.scale.bearings['back']) == stamps                  # the fusion keeps them all
+    restored = pickle.loads(pickle.dumps(g))
+    assert sorted(restored.scale.bearings['back']) == stamps[-2:]
+    assert sorted(g.scale.bearings['back']) == stamps                  # (pickling took nothing away)
+    nxt = 9 * DT_NS
+    restored.add_bearings('back', 1, nxt, [1, 2], xy, sigma)
+    assert not restored.tracks_settled(nxt, ['back'])                  # quarters 2 and 3 still to come
+    for q in (2, 3):
+        restored.add_bearings('back', q, nxt, [1, 2], xy, sigma)
+    assert restored.tracks_settled(nxt, ['back'])
