@@ -30,6 +30,7 @@ MAX_DENOMINATOR = 8  # kept fractions are keep / stride with stride up to this (
 # rig's fastest (30 / 20 Hz: 0.5); frame-to-frame jitter stays far below it.
 OWN_RATE_SHARE = 0.2
 MAX_LAGS = 256       # lags the governor keeps (free-running cameras: several per frame gap)
+CEILING_MEMORY_S = 30.0   # how long a fraction the lag outgrew caps the free-running climb
 
 
 def learn_period(period_ns: Optional[int], last_ns: Optional[int], stamp_ns: int) -> Optional[int]:
@@ -167,6 +168,10 @@ class FrameGovernor:
         self.lags: List[float] = []
         self.lag_stamps: List[int] = []
         self.clock_mismatch = False
+        # the lowest fraction the lag outgrew (free-running cameras' climb stays below it for
+        # CEILING_MEMORY_S of stamps), and the stamp then
+        self.ceiling: Optional[Fraction] = None
+        self.ceiling_ns: Optional[int] = None
 
     @property
     def enabled(self) -> bool:
@@ -193,6 +198,21 @@ class FrameGovernor:
         if up:
             return next((x for x in steps if x > self.fraction), self.fraction)
         return next((x for x in reversed(steps) if x < self.fraction), self.fraction)
+
+    def _climb(self, stamp_ns: int) -> Fraction:
+        """A step up for free-running cameras. While the lag has outgrown no fraction below
+        every frame (for CEILING_MEMORY_S), half the frames skipped are taken again, up to the
+        fraction below every frame, then every frame: an overload that passed (a node's move,
+        a burst of extraction) left a graph with room, where one fraction at a time cost a
+        0.5 s burst a fifth of the next 20 s of frames. Below a fraction the lag outgrew, one
+        fraction at a time: a graph at its limit is not overshot again."""
+        step = self._step(up=True)
+        if self.ceiling is not None and (stamp_ns - self.ceiling_ns) * 1e-9 > CEILING_MEMORY_S:
+            self.ceiling = self.ceiling_ns = None
+        if self.ceiling is not None and self.ceiling < 1:
+            return step
+        bold = self._at_most(1.0 - 0.5 * (1.0 - float(self.fraction)))
+        return max(step, min(bold, max(x for x in kept_fractions(self.max_stride) if x < 1)))
 
     def _free_running(self) -> bool:
         """Several estimates fused within one frame period: cameras at their own phases."""
@@ -250,6 +270,8 @@ class FrameGovernor:
                 # straight to a fraction that covers it
                 cost = gap * (1.0 + (recent[-1] - recent[0]) / max(recent_span_s, 1e-9))
                 fraction = min(self._at_most(P / (cost * (1.0 + self.margin))), self._step(up=False))
+                if self.ceiling is None or self.fraction <= self.ceiling:
+                    self.ceiling, self.ceiling_ns = self.fraction, int(stamp_ns)
         elif lag > 2 * self.max_lag_s:
             fraction = self._step(up=False)          # keeping up: drain the backlog
         elif len(self.lags) >= 2 * self.hold_frames and span_s >= (2 * self.hold_frames - 1) * gap - 0.5 * P:
@@ -261,8 +283,8 @@ class FrameGovernor:
             if self._free_running():
                 # one estimate's lag is one camera's image and its wait behind the others',
                 # not the rig's frame: it cannot say how much more the graph can take, so the
-                # fraction goes up a step at a time and the growing rule finds the cost
-                up = min(up, self._step(up=True))
+                # fraction goes up by steps and the growing rule finds the cost
+                up = min(up, self._climb(stamp_ns))
             fraction = min(max(self.fraction, up), Fraction(1))
         if fraction == self.fraction:
             return None
@@ -286,6 +308,8 @@ class FrameGovernor:
         s = dict(s)
         s.setdefault('keep', 1)
         s.setdefault('margin', 0.1)
+        s.setdefault('ceiling', None)
+        s.setdefault('ceiling_ns', None)
         if len(s.get('lag_stamps', ())) != len(s.get('lags', ())):
             s['lags'], s['lag_stamps'] = [], []
         vars(self).update(s)
