@@ -63,22 +63,3 @@ def test_entries_without_timings_or_foreign_names_are_ignored():
     assert not m.observe('other/front/q1', stages(5.0))
     assert not m.observe('ego_motion/front/q1', {k: 'nan?' for k in STAGE_KEYS})
     assert m.seen['front'] == [0, 0, 0, 0]
-
-
-def test_the_general_arbiters_load_counts_its_updates_per_camera_frame():
-    """Synchronised: one update a frame, its load its cost. Free-running (each camera fused
-    alone at its own stamp): four updates a frame period for four cameras, four times the load
-    a frame; the allocation compares it with the quarters' costs per frame."""
-    sync = CostMonitor(CAMERAS)
-    assert sync.general_arbiter_load_ms() is None
-    for _ in range(WARMUP_FRAMES + 2):
-        frame(sync, {'front': 2.0, 'left': 2.0})
-    assert sync.general_arbiter_load_ms() == pytest.approx(1.0)
-    rig = ['front', 'left', 'back', 'right']
-    free = CostMonitor(rig)
-    for _ in range(WARMUP_FRAMES + 2):
-        for cam in rig:                      # a camera's quarters, then its own update
-            frame(free, {cam: 2.0})
-    assert free.measured
-    assert free.general_arbiter_ms == pytest.approx(1.0)
-    assert free.general_arbiter_load_ms() == pytest.approx(4.0)

@@ -627,7 +627,7 @@ class Coordinator:
     def _cost_kw(self):
         kw = {'arbiter_costs': dict(self.costs.arbiter_ms)}
         if self.costs.general_arbiter_ms is not None:
-            kw['general_arbiter_ms'] = self.costs.general_arbiter_load_ms()
+            kw['general_arbiter_ms'] = self.costs.general_arbiter_ms
         return kw
 
     def between_frames(self, frame_index: int):

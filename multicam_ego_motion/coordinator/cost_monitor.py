@@ -36,8 +36,7 @@ class CostMonitor:
         self.features: Dict[str, List[int]] = {c: [0] * QUARTERS for c in self.cameras}
         self.seen: Dict[str, List[int]] = {c: [0] * QUARTERS for c in self.cameras}  # frames
         self.arbiter_ms: Dict[str, float] = {}
-        self.general_arbiter_ms = None          # per update (smoothed)
-        self.general_updates = 0                # the general arbiter's updates so far
+        self.general_arbiter_ms = None
         self.history = deque(maxlen=history)       # per frame: camera -> 4 smoothed costs
         self.nf_history = deque(maxlen=history)
         self.frames = 0
@@ -64,7 +63,6 @@ class CostMonitor:
                 self.arbiter_ms[parts[0]] = self._smooth(self.arbiter_ms.get(parts[0]), float(values['arbiter_ms']))
             elif parts == ['general_arbiter'] and 'arbiter_ms' in values:
                 self.general_arbiter_ms = self._smooth(self.general_arbiter_ms, float(values['arbiter_ms']))
-                self.general_updates += 1
                 self.frames += 1
                 self.history.append(self.quarter_costs())
                 self.nf_history.append({c: list(v) for c, v in self.features.items()})
@@ -72,19 +70,6 @@ class CostMonitor:
         except (ValueError, IndexError):
             pass
         return False
-
-    def general_arbiter_load_ms(self):
-        """The general arbiter's cost per camera frame (None before it reported): its cost per
-        update times its updates per camera frame. A synchronised rig's cameras share one
-        update a frame; free-running cameras are fused each at its own stamp, four updates a
-        frame period for four cameras, and counted as one the arbiter's worker read a quarter
-        of its load (loop at random phases: 3.8 ms an update, 15 a frame period) and never
-        asked for the rebalance that would keep it below one core."""
-        if self.general_arbiter_ms is None:
-            return None
-        frames = [max(seen) for seen in self.seen.values() if max(seen) > 0]
-        per_frame = self.general_updates / (sum(frames) / len(frames)) if frames else 1.0
-        return self.general_arbiter_ms * max(1.0, per_frame)
 
     @property
     def measured(self) -> bool:
