@@ -45,7 +45,7 @@ BEARING_STAMPS_KEPT = 12      # per camera: a pair spans at most scale_pair_max_
 # per camera in a pickled state (the general arbiter's snapshot after every update, for a
 # restore after a crash): the last two frames' tracks carry the next rotation fit and the wait
 # for tracks; all twelve cost 2.3 ms a pickle (~300 kB of small arrays, four free-running
-# cameras at 15 Hz: 60 snapshots a second, 13 % of the arbiter's worker). Older pairs come back
+# cameras at 15 Hz: 60 snapshots a second, 15 % of the arbiter's worker's time). Older pairs come back
 # within a few frames after a restore.
 SNAPSHOT_BEARING_STAMPS = 2
 

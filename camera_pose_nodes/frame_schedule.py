@@ -199,7 +199,7 @@ class FrameGovernor:
             return next((x for x in steps if x > self.fraction), self.fraction)
         return next((x for x in reversed(steps) if x < self.fraction), self.fraction)
 
-    def _climb(self, stamp_ns: int) -> Fraction:
+    def _climb(self) -> Fraction:
         """A step up for free-running cameras. While the lag has outgrown no fraction below
         every frame (for CEILING_MEMORY_S), half the frames skipped are taken again, up to the
         fraction below every frame, then every frame: an overload that passed (a node's move,
@@ -207,8 +207,6 @@ class FrameGovernor:
         0.5 s burst a fifth of the next 20 s of frames. Below a fraction the lag outgrew, one
         fraction at a time: a graph at its limit is not overshot again."""
         step = self._step(up=True)
-        if self.ceiling is not None and (stamp_ns - self.ceiling_ns) * 1e-9 > CEILING_MEMORY_S:
-            self.ceiling = self.ceiling_ns = None
         if self.ceiling is not None and self.ceiling < 1:
             return step
         bold = self._at_most(1.0 - 0.5 * (1.0 - float(self.fraction)))
@@ -242,6 +240,8 @@ class FrameGovernor:
             return None
         if self.period_ns is None:
             return None
+        if self.ceiling is not None and (stamp_ns - self.ceiling_ns) * 1e-9 > CEILING_MEMORY_S:
+            self.ceiling = self.ceiling_ns = None      # (forgotten before any rule reads it)
         P = self.period_ns * 1e-9
         gap = P / float(self.fraction)             # the mean gap between a camera's frames processed
         # The rules read lags over stamp time: hold_frames of a camera's processed frames (a
@@ -284,7 +284,7 @@ class FrameGovernor:
                 # one estimate's lag is one camera's image and its wait behind the others',
                 # not the rig's frame: it cannot say how much more the graph can take, so the
                 # fraction goes up by steps and the growing rule finds the cost
-                up = min(up, self._climb(stamp_ns))
+                up = min(up, self._climb())
             fraction = min(max(self.fraction, up), Fraction(1))
         if fraction == self.fraction:
             return None
